@@ -1,0 +1,259 @@
+"""Strict msgpack codec for the wire messages: encode(msg) -> bytes, decode(bytes) -> msg.
+
+Envelope {"v": 1, "type": <name>, "body": {...}}; arrays as {"dtype", "shape", "data"} little
+endian. Anything unexpected raises CodecError naming what was expected. No pickle anywhere."""
+
+import math
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from common.classes import NUM_CLASSES
+from common.errors import CodecError
+from common.grid import CELLS_PER_TILE
+from common.messages import GridPatch, IngestAck, IngestBatch, Pose, Stats, Tile
+
+VERSION = 1
+MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+MAX_BATCH_PATCHES = 4096
+MAX_ID_CHARS = 256
+
+
+# -- arrays ------------------------------------------------------------------------------------
+
+
+def pack_array(a: np.ndarray) -> dict:
+    a = np.ascontiguousarray(a)
+    dtype = a.dtype.newbyteorder("<") if a.dtype.byteorder == ">" else a.dtype
+    return {"dtype": dtype.str, "shape": list(a.shape), "data": a.astype(dtype).tobytes()}
+
+
+def unpack_array(obj: Any, what: str, dtype: str, ndim: int, width: int | None = None) -> np.ndarray:
+    if not isinstance(obj, dict) or set(obj) != {"dtype", "shape", "data"}:
+        raise CodecError(f"{what}: expected an array map {{dtype, shape, data}}")
+    if obj["dtype"] != dtype:
+        raise CodecError(f"{what}: expected dtype {dtype}, got {obj['dtype']!r}")
+    shape = obj["shape"]
+    if not isinstance(shape, list) or len(shape) != ndim or not all(
+        isinstance(n, int) and n >= 0 for n in shape
+    ):
+        raise CodecError(f"{what}: expected a shape of {ndim} non-negative ints, got {shape!r}")
+    if width is not None and shape[-1] != width:
+        raise CodecError(f"{what}: expected last dimension {width}, got {shape[-1]}")
+    data = obj["data"]
+    itemsize = np.dtype(dtype).itemsize
+    if not isinstance(data, bytes) or len(data) != itemsize * math.prod(shape):
+        raise CodecError(f"{what}: data length does not match shape {shape} of {dtype}")
+    return np.frombuffer(data, dtype=dtype).reshape(shape)
+
+
+# -- field checks -------------------------------------------------------------------------------
+
+
+def _field(body: dict, name: str, types, what: str):
+    if name not in body:
+        raise CodecError(f"{what}: missing field {name!r}")
+    value = body[name]
+    if not isinstance(value, types) or (isinstance(value, bool) and bool not in _tuple(types)):
+        raise CodecError(f"{what}: field {name!r} must be {_type_names(types)}")
+    if isinstance(value, float) and not math.isfinite(value):
+        raise CodecError(f"{what}: field {name!r} must be finite")
+    if isinstance(value, str) and len(value) > MAX_ID_CHARS:
+        raise CodecError(f"{what}: field {name!r} longer than {MAX_ID_CHARS} characters")
+    return value
+
+
+def _tuple(types) -> tuple:
+    return types if isinstance(types, tuple) else (types,)
+
+
+def _type_names(types) -> str:
+    return " or ".join(t.__name__ for t in _tuple(types))
+
+
+def _tile_field(body: dict, what: str) -> tuple[int, int]:
+    tile = _field(body, "tile", list, what)
+    if len(tile) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) for v in tile):
+        raise CodecError(f"{what}: field 'tile' must be [tx, ty] integers")
+    return int(tile[0]), int(tile[1])
+
+
+# -- per-type body encoders/decoders ------------------------------------------------------------
+
+
+def _enc_patch(p: GridPatch) -> dict:
+    return {
+        "patch_id": p.patch_id,
+        "vehicle": p.vehicle,
+        "tile": [int(p.tile[0]), int(p.tile[1])],
+        "cells": pack_array(np.asarray(p.cells, dtype="<u4")),
+        "votes": pack_array(np.asarray(p.votes, dtype="<u2")),
+        "t_first_ns": int(p.t_first_ns),
+        "t_last_ns": int(p.t_last_ns),
+        "traversal": p.traversal,
+    }
+
+
+def _dec_patch(body: dict) -> GridPatch:
+    what = "GridPatch"
+    if not isinstance(body, dict):
+        raise CodecError(f"{what}: body must be a map")
+    cells = unpack_array(body.get("cells"), f"{what}.cells", "<u4", 1)
+    votes = unpack_array(body.get("votes"), f"{what}.votes", "<u2", 2, NUM_CLASSES)
+    if votes.shape[0] != cells.shape[0]:
+        raise CodecError(f"{what}: votes must have one row per cell ({cells.shape[0]})")
+    if cells.size and int(cells.max()) >= CELLS_PER_TILE:
+        raise CodecError(f"{what}: cell index out of range [0, {CELLS_PER_TILE})")
+    if cells.size > 1 and not np.all(np.diff(cells.astype(np.int64)) > 0):
+        raise CodecError(f"{what}: cells must be sorted and unique")
+    t_first = _field(body, "t_first_ns", int, what)
+    t_last = _field(body, "t_last_ns", int, what)
+    if t_last < t_first:
+        raise CodecError(f"{what}: t_last_ns before t_first_ns")
+    patch_id = _field(body, "patch_id", str, what)
+    if not patch_id:
+        raise CodecError(f"{what}: patch_id must not be empty")
+    return GridPatch(
+        patch_id=patch_id,
+        vehicle=_field(body, "vehicle", str, what),
+        tile=_tile_field(body, what),
+        cells=cells,
+        votes=votes,
+        t_first_ns=t_first,
+        t_last_ns=t_last,
+        traversal=_field(body, "traversal", str, what),
+    )
+
+
+def _enc_batch(b: IngestBatch) -> dict:
+    return {"patches": [_enc_patch(p) for p in b.patches]}
+
+
+def _dec_batch(body: dict) -> IngestBatch:
+    patches = _field(body, "patches", list, "IngestBatch")
+    if len(patches) > MAX_BATCH_PATCHES:
+        raise CodecError(f"IngestBatch: at most {MAX_BATCH_PATCHES} patches, got {len(patches)}")
+    return IngestBatch([_dec_patch(p) for p in patches])
+
+
+def _enc_ack(a: IngestAck) -> dict:
+    return {"results": dict(a.results), "error": a.error}
+
+
+def _dec_ack(body: dict) -> IngestAck:
+    results = _field(body, "results", dict, "IngestAck")
+    for k, v in results.items():
+        if not isinstance(k, str) or v not in ("accepted", "duplicate"):
+            raise CodecError("IngestAck: results must map patch ids to accepted|duplicate")
+    error = body.get("error")
+    if error is not None and not isinstance(error, str):
+        raise CodecError("IngestAck: error must be a string or nil")
+    return IngestAck(results=results, error=error)
+
+
+def _enc_tile(t: Tile) -> dict:
+    return {
+        "tile": [int(t.tile[0]), int(t.tile[1])],
+        "version": int(t.version),
+        "codec": t.codec,
+        "data": bytes(t.data),
+        "classes": [int(c) for c in t.classes],
+    }
+
+
+def _dec_tile(body: dict) -> Tile:
+    what = "Tile"
+    classes = _field(body, "classes", list, what)
+    if not all(isinstance(c, int) and 0 <= c < 256 for c in classes):
+        raise CodecError(f"{what}: classes must be uint8 integers")
+    version = _field(body, "version", int, what)
+    if version < 0:
+        raise CodecError(f"{what}: version must be >= 0")
+    return Tile(
+        tile=_tile_field(body, what),
+        version=version,
+        codec=_field(body, "codec", str, what),
+        data=_field(body, "data", bytes, what),
+        classes=classes,
+    )
+
+
+def _enc_pose(p: Pose) -> dict:
+    return {
+        "vehicle": p.vehicle,
+        "t_ns": int(p.t_ns),
+        "x": float(p.x),
+        "y": float(p.y),
+        "yaw": float(p.yaw),
+        "cov": pack_array(np.asarray(p.cov, dtype="<f8").reshape(3, 3)),
+        "ok": bool(p.ok),
+    }
+
+
+def _dec_pose(body: dict) -> Pose:
+    what = "Pose"
+    cov = unpack_array(body.get("cov"), f"{what}.cov", "<f8", 2, 3)
+    if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
+        raise CodecError(f"{what}: cov must be a finite 3x3 float64 matrix")
+    return Pose(
+        vehicle=_field(body, "vehicle", str, what),
+        t_ns=_field(body, "t_ns", int, what),
+        x=_field(body, "x", float, what),
+        y=_field(body, "y", float, what),
+        yaw=_field(body, "yaw", float, what),
+        cov=cov,
+        ok=_field(body, "ok", bool, what),
+    )
+
+
+def _enc_stats(s: Stats) -> dict:
+    return {"role": s.role, "ident": s.ident, "counters": dict(s.counters)}
+
+
+def _dec_stats(body: dict) -> Stats:
+    return Stats(
+        role=_field(body, "role", str, "Stats"),
+        ident=_field(body, "ident", str, "Stats"),
+        counters=_field(body, "counters", dict, "Stats"),
+    )
+
+
+_CODECS = {
+    GridPatch: ("GridPatch", _enc_patch, _dec_patch),
+    IngestBatch: ("IngestBatch", _enc_batch, _dec_batch),
+    IngestAck: ("IngestAck", _enc_ack, _dec_ack),
+    Tile: ("Tile", _enc_tile, _dec_tile),
+    Pose: ("Pose", _enc_pose, _dec_pose),
+    Stats: ("Stats", _enc_stats, _dec_stats),
+}
+_DECODERS = {name: dec for name, _, dec in _CODECS.values()}
+
+
+def encode(msg) -> bytes:
+    try:
+        name, enc, _ = _CODECS[type(msg)]
+    except KeyError as exc:
+        raise CodecError(f"cannot encode {type(msg).__name__}") from exc
+    return msgpack.packb({"v": VERSION, "type": name, "body": enc(msg)}, use_bin_type=True)
+
+
+def decode(data: bytes, expect: type | None = None):
+    """Bytes -> message; with `expect`, also check the message type."""
+    if len(data) > MAX_MESSAGE_BYTES:
+        raise CodecError(f"message larger than {MAX_MESSAGE_BYTES} bytes")
+    try:
+        env = msgpack.unpackb(data, raw=False, strict_map_key=True, max_bin_len=MAX_MESSAGE_BYTES)
+    except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as exc:
+        raise CodecError(f"not a msgpack envelope {{v, type, body}}: {exc}") from exc
+    if not isinstance(env, dict) or set(env) != {"v", "type", "body"}:
+        raise CodecError("expected an envelope map with exactly {v, type, body}")
+    if env["v"] != VERSION:
+        raise CodecError(f"unsupported version {env['v']!r}, expected {VERSION}")
+    if env["type"] not in _DECODERS:
+        raise CodecError(f"unknown message type {env['type']!r}, expected one of {sorted(_DECODERS)}")
+    if expect is not None and env["type"] != _CODECS[expect][0]:
+        raise CodecError(f"expected a {_CODECS[expect][0]}, got {env['type']}")
+    if not isinstance(env["body"], dict):
+        raise CodecError(f"{env['type']}: body must be a map")
+    return _DECODERS[env["type"]](env["body"])

@@ -1,0 +1,222 @@
+"""Typed, sectioned configuration: frozen dataclasses with defaults in code.
+
+Precedence: defaults < TOML file (`--config`) < env `ROADMAP_<SECTION>__<FIELD>` < `--set
+section.field=value`. Values in env and --set are parsed as TOML values (`3`, `0.5`, `true`,
+`[1, 2]`, `"text"`), and bare words fall back to strings. Unknown sections or fields and wrong
+types raise ConfigError naming the offending key."""
+
+import dataclasses
+import os
+import tomllib
+import types
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from common.errors import ConfigError
+
+ENV_PREFIX = "ROADMAP_"
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """How a process reaches Zenoh (client of a router by default; multicast scouting always off)."""
+
+    mode: str = "client"
+    connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    listen: list[str] = field(default_factory=list)
+    lease_ms: int = 3000  # failure detection of hung processes (ZENOH.md 1.6)
+    shared_memory: bool = False  # off: avoids zenoh#2628 (SHM query/reply drops under load)
+    query_timeout_s: float = 5.0
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Front camera: pinhole + OpenCV distortion; mounting in the vehicle frame (x fwd, y left, z up)."""
+
+    width: int = 640
+    height: int = 360
+    fx: float = 460.0
+    fy: float = 460.0
+    cx: float = 320.0
+    cy: float = 180.0
+    dist: list[float] = field(default_factory=lambda: [-0.05, 0.01, 0.0, 0.0, 0.0])
+    x_m: float = 1.8  # forward of the rear axle
+    y_m: float = 0.0
+    height_m: float = 1.5
+    pitch_deg: float = 4.0  # looking down
+    roll_deg: float = 0.0
+    yaw_deg: float = 0.0
+
+
+@dataclass(frozen=True)
+class GridConfig:
+    shards: int = 2
+    shard_map: dict[str, int] = field(default_factory=dict)  # "rx,ry" -> shard, overrides hashing
+
+
+@dataclass(frozen=True)
+class RoiConfig:
+    """IPM region of interest in the vehicle frame (paper: 12 m ahead x 8 m wide)."""
+
+    x_min_m: float = 3.0
+    length_m: float = 12.0
+    width_m: float = 8.0
+
+
+@dataclass(frozen=True)
+class RoadmapConfig:
+    bus: BusConfig = field(default_factory=BusConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    grid: GridConfig = field(default_factory=GridConfig)
+    roi: RoiConfig = field(default_factory=RoiConfig)
+
+
+# -- loading -----------------------------------------------------------------------------------
+
+
+def _parse_scalar(text: str):
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def _coerce(value, tp, where: str):
+    origin = typing.get_origin(tp)
+    if tp is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if tp in (int, float, str, bool):
+        if not isinstance(value, tp) or (tp is int and isinstance(value, bool)):
+            raise ConfigError(f"{where}: expected {tp.__name__}, got {value!r}")
+        return value
+    if origin is list:
+        (item,) = typing.get_args(tp)
+        if isinstance(value, str) and item is str:
+            value = [v for v in value.split(",") if v]
+        if not isinstance(value, list):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        return [_coerce(v, item, where) for v in value]
+    if origin is dict:
+        _, vt = typing.get_args(tp)
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where}: expected a table, got {value!r}")
+        return {str(k): _coerce(v, vt, where) for k, v in value.items()}
+    if origin in (types.UnionType, typing.Union):
+        if value is None or value == "":
+            return None
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        return _coerce(value, args[0], where)
+    raise ConfigError(f"{where}: unsupported config type {tp}")
+
+
+def _merge(obj, overrides: Mapping, where: str):
+    if not dataclasses.is_dataclass(obj):
+        raise ConfigError(f"{where}: not a section")
+    hints = typing.get_type_hints(type(obj))
+    changes = {}
+    for key, value in overrides.items():
+        if key not in hints:
+            known = ", ".join(sorted(hints))
+            raise ConfigError(f"unknown config key {where}.{key} (known: {known})".replace("..", "."))
+        current = getattr(obj, key)
+        sub = f"{where}.{key}" if where else key
+        if dataclasses.is_dataclass(current):
+            if not isinstance(value, Mapping):
+                raise ConfigError(f"{sub}: expected a table")
+            changes[key] = _merge(current, value, sub)
+        else:
+            changes[key] = _coerce(value, hints[key], sub)
+    return dataclasses.replace(obj, **changes)
+
+
+def _nest(dotted: Mapping[str, object]) -> dict:
+    out: dict = {}
+    for key, value in dotted.items():
+        parts = key.split(".")
+        node = out
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = value
+    return out
+
+
+def _env_overrides(env: Mapping[str, str]) -> dict:
+    dotted = {}
+    for key, value in env.items():
+        if key.startswith(ENV_PREFIX) and "__" in key:
+            path = key[len(ENV_PREFIX) :].lower().replace("__", ".")
+            dotted[path] = _parse_scalar(value)
+    return _nest(dotted)
+
+
+def _set_overrides(items: list[str]) -> dict:
+    dotted = {}
+    for item in items:
+        if "=" not in item:
+            raise ConfigError(f"--set expects section.key=value, got {item!r}")
+        key, value = item.split("=", 1)
+        dotted[key.strip()] = _parse_scalar(value.strip())
+    return _nest(dotted)
+
+
+def load_config(
+    path: str | os.PathLike | None = None,
+    *,
+    env: Mapping[str, str] | None = None,
+    sets: list[str] | None = None,
+    base: RoadmapConfig | None = None,
+) -> RoadmapConfig:
+    """Defaults < file < env < --set; validated once here."""
+    cfg = base or RoadmapConfig()
+    if path:
+        try:
+            with open(path, "rb") as f:
+                cfg = _merge(cfg, tomllib.load(f), "")
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise ConfigError(f"cannot read config {path}: {exc}") from exc
+    cfg = _merge(cfg, _env_overrides(os.environ if env is None else env), "")
+    cfg = _merge(cfg, _set_overrides(sets or []), "")
+    _validate(cfg)
+    return cfg
+
+
+def _validate(cfg: RoadmapConfig) -> None:
+    if cfg.grid.shards < 1:
+        raise ConfigError("grid.shards must be >= 1")
+    if cfg.bus.mode not in ("client", "peer", "router"):
+        raise ConfigError(f"bus.mode must be client, peer or router, got {cfg.bus.mode!r}")
+    if cfg.camera.width <= 0 or cfg.camera.height <= 0:
+        raise ConfigError("camera.width and camera.height must be positive")
+    if len(cfg.camera.dist) not in (4, 5, 8):
+        raise ConfigError("camera.dist needs 4, 5 or 8 OpenCV coefficients")
+    bad = [v for v in cfg.grid.shard_map.values() if not 0 <= v < cfg.grid.shards]
+    if bad:
+        raise ConfigError(f"grid.shard_map names shards outside [0, {cfg.grid.shards}): {bad}")
+
+
+def to_toml(obj, prefix: str = "") -> str:
+    """Render a config as TOML (for `roadmap dump-config` and the effective config of a run)."""
+    scalars, tables = [], []
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            name = f"{prefix}{f.name}"
+            tables.append(f"\n[{name}]\n" + to_toml(value, name + "."))
+        else:
+            scalars.append(f"{f.name} = {_toml_value(value)}")
+    return "\n".join(scalars) + ("\n" if scalars else "") + "".join(tables)
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f'"{k}" = {_toml_value(v)}' for k, v in value.items()) + "}"
+    if value is None:
+        return '""'
+    return repr(value)

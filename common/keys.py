@@ -1,0 +1,77 @@
+"""The Zenoh key space (DESIGN.md: Key space): every key is built and parsed here and nowhere else.
+
+Tile routing: a merger shard declares one queryable with complete=True on
+`roadmap/tile/<tx>/<ty>` for every tile it holds data for (declared when a tile gets its first
+patch, and on start-up for every stored tile). A tile query therefore reaches only its owner,
+never every shard, and a `get` on a tile nobody holds answers with no reply at once. The routing
+state grows with the tiles a shard holds, not with the number of shards. Ingest goes to the shard
+by name (`roadmap/ingest/s<k>`): the vehicle computes the owner with common.grid.owner_of_tile."""
+
+from common.errors import CodecError
+
+PREFIX = "roadmap"
+
+
+def ingest(shard: int) -> str:
+    return f"{PREFIX}/ingest/s{shard}"
+
+
+def tile(tx: int, ty: int) -> str:
+    return f"{PREFIX}/tile/{tx}/{ty}"
+
+
+def tile_update(tx: int, ty: int) -> str:
+    return f"{PREFIX}/tile-update/{tx}/{ty}"
+
+
+TILE_UPDATE_ALL = f"{PREFIX}/tile-update/*/*"
+
+
+def pose(vehicle: str) -> str:
+    return f"{PREFIX}/pose/{vehicle}"
+
+
+def stats(role: str, ident: str) -> str:
+    return f"{PREFIX}/stats/{role}/{ident}"
+
+
+def alive(role: str, ident: str) -> str:
+    return f"{PREFIX}/alive/{role}/{ident}"
+
+
+def alive_all(role: str) -> str:
+    return f"{PREFIX}/alive/{role}/*"
+
+
+def _chunks(key: str, head: str, n: int) -> list[str]:
+    parts = str(key).split("/")
+    if len(parts) != n + 2 or parts[0] != PREFIX or parts[1] != head:
+        raise CodecError(f"expected key {PREFIX}/{head}/ + {n} chunks, got {key!r}")
+    return parts[2:]
+
+
+def parse_tile(key: str) -> tuple[int, int]:
+    """`roadmap/tile/<tx>/<ty>` or `roadmap/tile-update/<tx>/<ty>` -> (tx, ty)."""
+    head = str(key).split("/")[1] if "/" in str(key) else ""
+    tx, ty = _chunks(key, head if head in ("tile", "tile-update") else "tile", 2)
+    try:
+        return int(tx), int(ty)
+    except ValueError as exc:
+        raise CodecError(f"tile key needs integer chunks, got {key!r}") from exc
+
+
+def parse_ingest(key: str) -> int:
+    (chunk,) = _chunks(key, "ingest", 1)
+    if not chunk.startswith("s") or not chunk[1:].isdigit():
+        raise CodecError(f"ingest key needs s<shard>, got {key!r}")
+    return int(chunk[1:])
+
+
+def parse_alive(key: str) -> tuple[str, str]:
+    role, ident = _chunks(key, "alive", 2)
+    return role, ident
+
+
+def parse_pose(key: str) -> str:
+    (vehicle,) = _chunks(key, "pose", 1)
+    return vehicle

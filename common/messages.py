@@ -1,0 +1,66 @@
+"""Wire messages (DESIGN.md: Wire format) as plain dataclasses; common.codec turns them into bytes."""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common.classes import NUM_CLASSES
+
+
+@dataclass(frozen=True)
+class GridPatch:
+    """Occupied cells of one vehicle's local grid inside one tile: the idempotent upload unit."""
+
+    patch_id: str  # unique per vehicle and patch: the idempotency key
+    vehicle: str
+    tile: tuple[int, int]
+    cells: np.ndarray  # uint32 [n], flat row * 512 + col, sorted, unique
+    votes: np.ndarray  # uint16 [n, NUM_CLASSES] counts per class
+    t_first_ns: int
+    t_last_ns: int
+    traversal: str  # id of the drive
+
+
+@dataclass(frozen=True)
+class IngestBatch:
+    patches: list[GridPatch]
+
+
+ACCEPTED = "accepted"
+DUPLICATE = "duplicate"
+
+
+@dataclass(frozen=True)
+class IngestAck:
+    results: dict[str, str] = field(default_factory=dict)  # patch_id -> accepted | duplicate
+    error: str | None = None  # set when the whole batch was rejected; then nothing was applied
+
+
+@dataclass(frozen=True)
+class Tile:
+    tile: tuple[int, int]
+    version: int  # monotonic per tile
+    codec: str  # name/version of the tile codec, e.g. "contour/1"
+    data: bytes
+    classes: list[int] = field(default_factory=lambda: list(range(NUM_CLASSES)))
+
+
+@dataclass(frozen=True)
+class Pose:
+    vehicle: str
+    t_ns: int
+    x: float
+    y: float
+    yaw: float
+    cov: np.ndarray  # float64 [3, 3] over (x, y, yaw)
+    ok: bool  # integrity: False when the filter cannot trust itself
+
+
+@dataclass(frozen=True)
+class Stats:
+    role: str
+    ident: str
+    counters: dict[str, float | int | str] = field(default_factory=dict)
+
+
+MESSAGE_TYPES = (GridPatch, IngestBatch, IngestAck, Tile, Pose, Stats)

@@ -1,0 +1,161 @@
+"""`roadmap`: one console script, argparse subcommands, each importing its service lazily.
+
+Every handler is `fn(args, cfg) -> int | None` in the module named in COMMANDS; everything a
+command does is also a plain Python function the tests call directly. Known errors (RoadmapError)
+become one line and exit 1; anything else logs a traceback and exits 1."""
+
+import argparse
+import importlib
+import logging
+import sys
+
+from common.config import load_config, to_toml
+from common.errors import RoadmapError
+from common.log import configure_logging
+
+logger = logging.getLogger("roadmap")
+
+WORLD_HELP = "town | town:<km> | lanelet2:PATH | av2:PATH (default: Karlsruhe when ../shared/data exists)"
+
+# subcommand -> "module:function"
+COMMANDS = {
+    "sim": "services.sim.cli:sim_command",
+    "world": "services.sim.cli:world_command",
+    "vehicle": "services.vehicle.node:main",
+    "merger": "services.merger.node:main",
+    "localize": "services.localizer.node:main",
+    "router": "services.router:command",
+    "demo": "services.demo.run:demo_command",
+    "up": "services.demo.run:up_command",
+    "bench": "services.demo.bench:bench_command",
+    "train-seg": "services.segtrain.train:train_command",
+    "dump-config": "services.cli:dump_config",
+}
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("configuration")
+    g.add_argument("--config", help="TOML file overriding the defaults")
+    g.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override one setting (repeatable; beats env ROADMAP_SECTION__KEY)")
+    g.add_argument("--log-level", default="INFO")
+    z = p.add_argument_group("zenoh")
+    z.add_argument("--connect", action="append", help="router endpoint, e.g. tcp/127.0.0.1:7447")
+    z.add_argument("--mode", choices=["client", "peer"], help="zenoh mode (default client)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="roadmap", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version="roadmap 0.1.0")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("sim", help="simulate drives and write drive logs")
+    p.add_argument("--world", default=None, help=WORLD_HELP)
+    p.add_argument("--out", required=True, help="directory for the drive logs")
+    p.add_argument("--vehicles", type=int, default=1)
+    p.add_argument("--drives", type=int, default=1, help="drives per vehicle")
+    p.add_argument("--profile", choices=["mapping", "production"], default="mapping")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-km", type=float, default=None, help="cap each drive's length")
+    p.add_argument("--no-images", action="store_true", help="labels and sensors only")
+    _common(p)
+
+    p = sub.add_parser("world", help="world tools")
+    wsub = p.add_subparsers(dest="world_command", required=True)
+    r = wsub.add_parser("render", help="render a world to a PNG in the paper's colours")
+    r.add_argument("--world", default=None, help=WORLD_HELP)
+    r.add_argument("--out", required=True)
+    r.add_argument("--seed", type=int, default=0)
+    _common(r)
+
+    p = sub.add_parser("vehicle", help="on-vehicle mapping of one drive log")
+    p.add_argument("--log", required=True, help="drive log directory")
+    p.add_argument("--id", default=None, help="vehicle id (default: from the log)")
+    p.add_argument("--state", default=None, help="directory for the outbox (default: LOG/.vehicle)")
+    p.add_argument("--segmenter", choices=["onnx", "truth"], default=None)
+    _common(p)
+
+    p = sub.add_parser("merger", help="a tile merger shard")
+    p.add_argument("--shard", type=int, required=True)
+    p.add_argument("--shards", type=int, required=True)
+    p.add_argument("--store", default=None, help="SQLite file (default ./merger-s<I>.sqlite)")
+    _common(p)
+
+    p = sub.add_parser("localize", help="localize a production drive log against the map")
+    p.add_argument("--log", required=True)
+    p.add_argument("--out", default=None)
+    p.add_argument("--id", default=None)
+    _common(p)
+
+    p = sub.add_parser("router", help="run a local Zenoh router")
+    p.add_argument("--listen", action="append", default=None, help="default tcp/127.0.0.1:7447")
+    p.add_argument("--peer", action="append", default=[], help="another router to mesh with")
+    p.add_argument("--log-level", default="INFO")
+    p.add_argument("--config", default=None)
+    p.add_argument("--set", action="append", default=[])
+
+    for name, text in (("demo", "run the whole fleet locally and write a report"),
+                       ("up", "start the deployment topology as local processes")):
+        p = sub.add_parser(name, help=text)
+        p.add_argument("--world", default=None, help=WORLD_HELP)
+        p.add_argument("--vehicles", type=int, default=3)
+        p.add_argument("--shards", type=int, default=2)
+        p.add_argument("--seed", type=int, default=0)
+        p.add_argument("--out", default="out")
+        if name == "demo":
+            p.add_argument("--scenario", choices=["default", "repaint"], default="default")
+            p.add_argument("--chaos", action="store_true", help="kill and restart a shard and a vehicle")
+            p.add_argument("--small", action="store_true", help="a short drive (for tests)")
+        _common(p)
+
+    p = sub.add_parser("bench", help="benchmark every stage and write bench.json")
+    p.add_argument("--out", default="out")
+    p.add_argument("--quick", action="store_true")
+    _common(p)
+
+    p = sub.add_parser("train-seg", help="train the segmentation model (needs .[train])")
+    p.add_argument("--out", default="common/models")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--minutes", type=float, default=45.0)
+    _common(p)
+
+    p = sub.add_parser("dump-config", help="print the effective configuration as TOML")
+    _common(p)
+    return parser
+
+
+def dump_config(args, cfg) -> int:
+    sys.stdout.write(to_toml(cfg))
+    return 0
+
+
+def command_config(args):
+    """Effective config for a command: defaults < --config < env < --set < --connect/--mode."""
+    sets = list(getattr(args, "set", []) or [])
+    if getattr(args, "connect", None):
+        sets.append("bus.connect=[" + ", ".join(f'"{c}"' for c in args.connect) + "]")
+    if getattr(args, "mode", None):
+        sets.append(f'bus.mode="{args.mode}"')
+    return load_config(getattr(args, "config", None), sets=sets)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    configure_logging(getattr(args, "log_level", "INFO"))
+    try:
+        cfg = command_config(args)
+        module, func = COMMANDS[args.command].split(":")
+        handler = getattr(importlib.import_module(module), func)
+        return int(handler(args, cfg) or 0)
+    except RoadmapError as exc:
+        sys.stderr.write(f"roadmap {args.command}: error: {exc}\n")
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    except Exception:
+        logger.exception("roadmap %s failed", args.command)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,33 @@
+"""Camera projection and IPM (paper eq. 1) against analytic ground points."""
+
+import numpy as np
+
+from common.camera import build_ipm_lookup, camera_from_config
+from common.config import RoadmapConfig
+
+
+def test_ipm_inverts_projection_of_ground_points(rng):
+    cam = camera_from_config(RoadmapConfig().camera)
+    pts = np.column_stack([rng.uniform(5, 15, 200), rng.uniform(-4, 4, 200), np.zeros(200)])
+    uv, in_front = cam.project_vehicle_points(pts)
+    assert in_front.all()
+    back = cam.ground_points(uv)
+    assert np.abs(back - pts[:, :2]).max() < 1e-6
+
+
+def test_level_camera_horizon_has_no_ground_point():
+    cam = camera_from_config(RoadmapConfig().camera)
+    uv = np.array([[320.0, 10.0]])  # far above the horizon
+    assert np.isnan(cam.ground_points(uv)).all()
+
+
+def test_ipm_lookup_covers_only_the_roi():
+    cam = camera_from_config(RoadmapConfig().camera)
+    lut = build_ipm_lookup(cam, x_min_m=3.0, length_m=12.0, width_m=8.0)
+    xy = lut.ground_xy_m
+    assert xy[:, 0].min() >= 3.0 and xy[:, 0].max() <= 15.0 and np.abs(xy[:, 1]).max() <= 4.0
+    labels = np.zeros((cam.height, cam.width), np.uint8)
+    labels[-1, :] = 2  # bottom row: nearest ground
+    labels[0, :] = 2  # top row: sky, outside the ROI
+    pts, cls = lut.lookup(labels)
+    assert len(pts) > 0 and (cls == 2).all() and pts[:, 0].max() < 6.0
