@@ -1,0 +1,34 @@
+"""CLI smoke tests through a real subprocess: help, dump-config, error mapping to exit codes."""
+
+import subprocess
+import sys
+import tomllib
+
+from tests.conftest import REPO
+
+
+def roadmap(*args, env=None):
+    return subprocess.run([sys.executable, "-m", "services.cli", *args], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=60)
+
+
+def test_help_lists_every_command():
+    out = roadmap("--help").stdout
+    for cmd in ("sim", "world", "vehicle", "merger", "localize", "demo", "bench", "dump-config"):
+        assert cmd in out
+
+
+def test_dump_config_is_valid_toml_with_overrides():
+    import os
+
+    env = dict(os.environ, ROADMAP_GRID__SHARDS="7")
+    res = roadmap("dump-config", "--set", "camera.fx=512", env=env)
+    assert res.returncode == 0, res.stderr
+    cfg = tomllib.loads(res.stdout)
+    assert cfg["grid"]["shards"] == 7 and cfg["camera"]["fx"] == 512.0
+
+
+def test_bad_setting_is_one_line_and_exit_1():
+    res = roadmap("dump-config", "--set", "grid.shards=none")
+    assert res.returncode == 1
+    assert res.stderr.strip().count("\n") == 0 and "grid.shards" in res.stderr
