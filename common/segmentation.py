@@ -4,12 +4,24 @@
 localization can be tested without the model; `OnnxSegmenter` runs a real ONNX model. Both have
 one verb: `segment(image_rgb, labels_true=None) -> labels`. `get_segmenter(...)` chooses."""
 
+import json
+import logging
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from common.classes import Cls
+from common.classes import NUM_CLASSES, Cls
+from common.errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+# The model trained by services/segtrain, packaged with the library (see models/MODEL_CARD.md).
+DEFAULT_MODEL = Path(__file__).resolve().parent / "models" / "roadseg.onnx"
+# ONNX metadata key under which a model describes its own input (written by services/segtrain).
+META_KEY = "roadmap.segmentation"
 
 
 class Segmenter:
@@ -77,3 +89,116 @@ class GroundTruthSegmenter(Segmenter):
             axes = (int(self._rng.integers(1, 4)), int(self._rng.integers(1, 6)))
             cv2.ellipse(labels, (int(x), int(y)), axes, float(self._rng.uniform(0, 180)), 0, 360,
                         cls, -1)
+
+
+def _identity_head(num_outputs: int) -> dict[int, int]:
+    """Single-head default: output class i is our class i; classes beyond ours map to 0."""
+    return {i: (i if i < NUM_CLASSES else 0) for i in range(num_outputs)}
+
+
+class OnnxSegmenter(Segmenter):
+    """An ONNX segmentation network run by onnxruntime on the CPU.
+
+    Per frame: resize the RGB image to the model's input size (W, H), normalize
+    ((rgb * scale - mean) / std, NCHW float32), run, argmax every head over its class axis, map
+    each head's classes to ours (`head_map`: output name -> {model class -> our class}; heads are
+    applied in `priority` order, later heads painting over earlier ones, class 0 never paints),
+    and resize the labels back to the image size (nearest). Missing settings are read from the
+    model's own metadata (key `roadmap.segmentation`) or its input shape."""
+
+    def __init__(
+        self,
+        model_path: str | os.PathLike = DEFAULT_MODEL,
+        *,
+        input_size: tuple[int, int] | None = None,
+        scale: float | None = None,
+        mean: tuple[float, float, float] | None = None,
+        std: tuple[float, float, float] | None = None,
+        head_map: dict[str, dict[int, int]] | None = None,
+        priority: list[str] | None = None,
+        intra_op_threads: int = 1,
+        name: str | None = None,
+    ):
+        import onnxruntime as ort
+
+        path = Path(model_path)
+        if not path.is_file():
+            raise ConfigError(f"segmentation model not found: {path}")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = int(intra_op_threads)
+        opts.inter_op_num_threads = 1
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        self._session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        meta = json.loads(self._session.get_modelmeta().custom_metadata_map.get(META_KEY, "{}"))
+        inp = self._session.get_inputs()[0]
+        self._input_name = inp.name
+        self.input_size = tuple(input_size or meta.get("input_size") or (inp.shape[3], inp.shape[2]))
+        self.scale = float(scale if scale is not None else meta.get("scale", 1.0 / 255.0))
+        self.mean = np.asarray(mean if mean is not None else meta.get("mean", (0.0, 0.0, 0.0)),
+                               np.float32)
+        self.std = np.asarray(std if std is not None else meta.get("std", (1.0, 1.0, 1.0)),
+                              np.float32)
+        self.head_map, self.priority = self._heads(head_map, priority)
+        self.name = name or meta.get("name", path.stem)
+
+    def _heads(self, head_map, priority):
+        outputs = self._session.get_outputs()
+        names = [o.name for o in outputs]
+        if head_map is None:
+            head_map = {names[0]: _identity_head(int(outputs[0].shape[1]))}
+        head_map = {str(h): {int(k): int(v) for k, v in m.items()} for h, m in head_map.items()}
+        unknown = [h for h in head_map if h not in names]
+        if unknown:
+            raise ConfigError(f"model has no output(s) {unknown}; it has {names}")
+        bad = [v for m in head_map.values() for v in m.values() if not 0 <= v < NUM_CLASSES]
+        if bad:
+            raise ConfigError(f"head_map targets classes outside 0..{NUM_CLASSES - 1}: {bad}")
+        priority = list(priority or head_map)
+        if sorted(priority) != sorted(head_map):
+            raise ConfigError(f"priority {priority} must list exactly the heads {list(head_map)}")
+        return head_map, priority
+
+    def preprocess(self, image_rgb: np.ndarray) -> np.ndarray:
+        """RGB (H, W, 3) uint8 -> model input (1, 3, h, w) float32."""
+        w, h = self.input_size
+        img = image_rgb
+        if img.shape[1] != w or img.shape[0] != h:
+            img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+        x = (img.astype(np.float32) * self.scale - self.mean) / self.std
+        return np.ascontiguousarray(x.transpose(2, 0, 1)[None])
+
+    def segment_model_size(self, image_rgb: np.ndarray) -> np.ndarray:
+        """Labels (h, w) uint8 at the model's input size (no resize back)."""
+        outs = self._session.run(self.priority, {self._input_name: self.preprocess(image_rgb)})
+        labels = None
+        for head, logits in zip(self.priority, outs):
+            arg = np.argmax(logits[0], axis=0)
+            lut = np.zeros(logits.shape[1], np.uint8)  # model classes not in the map -> 0
+            for k, v in self.head_map[head].items():
+                if k < len(lut):
+                    lut[k] = v
+            mapped = lut[arg]
+            if labels is None:
+                labels = mapped
+            else:
+                labels = np.where(mapped > 0, mapped, labels)
+        return labels.astype(np.uint8)
+
+    def segment(self, image_rgb, labels_true=None) -> np.ndarray:
+        if image_rgb is None:
+            raise ValueError("OnnxSegmenter needs the camera image of the frame")
+        labels = self.segment_model_size(image_rgb)
+        h, w = image_rgb.shape[:2]
+        if labels.shape != (h, w):
+            labels = cv2.resize(labels, (w, h), interpolation=cv2.INTER_NEAREST)
+        return labels
+
+
+def get_segmenter(kind: str = "onnx", **kw) -> Segmenter:
+    """Factory: "truth" -> GroundTruthSegmenter(**kw); "onnx" -> OnnxSegmenter(**kw) with the
+    packaged model unless `model_path` is given."""
+    if kind == "truth":
+        return GroundTruthSegmenter(**kw)
+    if kind == "onnx":
+        return OnnxSegmenter(**kw)
+    raise ConfigError(f"unknown segmenter {kind!r} (expected 'onnx' or 'truth')")
