@@ -65,11 +65,29 @@ class RoiConfig:
 
 
 @dataclass(frozen=True)
+class DemoConfig:
+    """`roadmap demo` / `roadmap up`: drive lengths, segmenter and time limits of the local fleet."""
+
+    segmenter: str = "truth"  # "truth" (corrupted true labels) or "onnx" (needs rendered images)
+    images: bool = False  # render camera frames for the mapping drives (slow on 2 cores)
+    max_km: float = 0.4  # length of each simulated drive
+    small_max_km: float = 0.12  # --small
+    drives: int = 1  # mapping drives per vehicle
+    repaint_drives_before: int = 2  # per vehicle, old paint
+    repaint_drives_after: int = 5  # single traversals after the repaint, one at a time
+    chaos_after_s: float = 2.0  # kill a shard and a vehicle this long after their first patch
+    vehicle_timeout_s: float = 600.0
+    localizer_timeout_s: float = 600.0
+    query_timeout_s: float = 5.0
+
+
+@dataclass(frozen=True)
 class RoadmapConfig:
     bus: BusConfig = field(default_factory=BusConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     grid: GridConfig = field(default_factory=GridConfig)
     roi: RoiConfig = field(default_factory=RoiConfig)
+    demo: DemoConfig = field(default_factory=DemoConfig)
 
 
 # -- loading -----------------------------------------------------------------------------------
