@@ -1,0 +1,185 @@
+"""Class-aware point-to-map ICP on SE(2) (paper eq. 4).
+
+The frame's semantic points (vehicle frame, metres) are matched to the nearest map cell of the
+same class; Gauss-Newton with Huber weights and a shrinking correspondence gate estimates
+T_world_vehicle = (x, y, yaw). The covariance is the inverse information matrix scaled by the
+residuals; directions the geometry does not constrain (lane lines only: along the road) are
+detected from the information matrix's eigenvalues, left out of the update and inflated."""
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.geometry import wrap_angle
+from common.grid import CELL_M
+
+DEGENERATE_VARIANCE = 25.0  # (5 m)^2 / (5 rad)^2-ish: "no information" in that direction
+
+
+@dataclass(frozen=True)
+class IcpResult:
+    pose: np.ndarray  # (x, y, yaw) T_world_vehicle
+    cov: np.ndarray  # 3x3 over (x, y, yaw)
+    inliers: int
+    points: int
+    rmse_m: float
+    degenerate: bool
+    weak_direction: np.ndarray  # unit 3-vector of the least constrained direction
+    info_eigs: np.ndarray  # eigenvalues of the (normalized) information matrix, ascending
+    iterations: int
+
+    @property
+    def inlier_ratio(self) -> float:
+        return self.inliers / max(self.points, 1)
+
+
+def _robust_weights(err_m: np.ndarray, huber_m: float) -> np.ndarray:
+    w = np.ones_like(err_m)
+    big = err_m > huber_m
+    w[big] = huber_m / err_m[big]
+    return w
+
+
+def _normal_equations(pts_v, nearest, pose, gate_m, huber_m):
+    """Distance of points (vehicle frame) placed at pose to their nearest map cells (0.1 m squares).
+
+    The residual is the scalar distance to the cell's square, so points already on a map cell of
+    their class add no information: the Hessian comes from the points that are off the map, and
+    steps are full Gauss-Newton steps (point-to-point with dense cells would crawl)."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    rx = c * pts_v[:, 0] - s * pts_v[:, 1]
+    ry = s * pts_v[:, 0] + c * pts_v[:, 1]
+    ex = rx + pose[0] - nearest[:, 0]
+    ey = ry + pose[1] - nearest[:, 1]
+    half = 0.5 * CELL_M
+    ex = np.sign(ex) * np.maximum(np.abs(ex) - half, 0.0)
+    ey = np.sign(ey) * np.maximum(np.abs(ey) - half, 0.0)
+    err = np.hypot(ex, ey)
+    inl = err < gate_m
+    on = err > 1e-9
+    nx = np.where(on, ex / np.where(on, err, 1.0), 0.0)
+    ny = np.where(on, ey / np.where(on, err, 1.0), 0.0)
+    w = _robust_weights(err, huber_m) * inl
+    # Jacobian row of the distance: n^T [[1, 0, -ry], [0, 1, rx]]
+    J = np.stack([nx, ny, rx * ny - ry * nx], axis=1)
+    H = (J * w[:, None]).T @ J
+    g = J.T @ (w * err)
+    return H, g, err, inl, w
+
+class Icp:
+    """Point-to-map ICP against a map exposing `nearest(points_world, slots)`."""
+
+    def __init__(self, *, iterations: int = 12, gate_start_m: float = 1.5, gate_end_m: float = 0.4,
+                 huber_m: float = 0.1, yaw_lever_m: float = 8.0, degenerate_ratio: float = 1e-3,
+                 cov_scale: float = 4.0, point_sigma_m: float = 0.05, probe_m: float = 0.1,
+                 min_sigma_m: float = 0.01, min_sigma_yaw_rad: float = 0.001, min_points: int = 30):
+        self.iterations = iterations
+        self.gate_start_m, self.gate_end_m = gate_start_m, gate_end_m
+        self.huber_m = huber_m
+        self.yaw_lever_m = yaw_lever_m  # yaw in "metres at this lever" when comparing eigenvalues
+        self.degenerate_ratio = degenerate_ratio
+        self.cov_scale = cov_scale  # neighbouring points are correlated: n points != n samples
+        self.point_sigma_m = point_sigma_m  # distance noise of one point at the probe poses
+        self.probe_m = probe_m
+        self.min_sigma_m, self.min_sigma_yaw_rad = min_sigma_m, min_sigma_yaw_rad
+        self.min_points = min_points
+
+    def register(self, points_v: np.ndarray, slots: np.ndarray, pose0: np.ndarray, local_map):
+        """Align points (N, 2) of class slots (N,) to the map from an initial pose; None if too few."""
+        pose = np.asarray(pose0, dtype=np.float64).copy()
+        if len(points_v) < self.min_points:
+            return None
+        pts = np.asarray(points_v, dtype=np.float64)
+        scale = np.array([1.0, 1.0, self.yaw_lever_m])  # information in comparable units
+        it = 0
+        for it in range(self.iterations):
+            gate = self.gate_start_m + (self.gate_end_m - self.gate_start_m) * it / max(
+                self.iterations - 1, 1)
+            nearest, valid = local_map.nearest(_to_world(pts, pose), slots)
+            H, g, err, inl, w = _normal_equations(pts[valid], nearest[valid], pose, gate,
+                                                  self.huber_m)
+            if inl.sum() < self.min_points:
+                return None
+            step = _constrained_step(H, g, scale, self.degenerate_ratio)
+            pose = pose + step
+            pose[2] = float(wrap_angle(pose[2]))
+            if np.abs(step[:2]).max() < 1e-4 and abs(step[2]) < 1e-5 and it >= 2:
+                break
+        return self._result(pts, slots, pose, local_map, scale, it + 1)
+
+    def _result(self, pts, slots, pose, local_map, scale, iterations) -> IcpResult:
+        nearest, valid = local_map.nearest(_to_world(pts, pose), slots)
+        _, _, err, inl, w = _normal_equations(pts[valid], nearest[valid], pose, self.gate_end_m,
+                                              self.huber_m)
+        H = self._smoothed_information(pts, slots, pose, local_map, scale)
+        cov, inflation, eigs, weak, degenerate = _covariance(H, scale, self.degenerate_ratio)
+        cov = cov * self.point_sigma_m**2 * self.cov_scale + inflation
+        cov[0, 0] += self.min_sigma_m**2
+        cov[1, 1] += self.min_sigma_m**2
+        cov[2, 2] += self.min_sigma_yaw_rad**2
+        n = int(inl.sum())
+        rmse = float(np.sqrt(np.mean(err[inl] ** 2))) if n else float("inf")
+        return IcpResult(pose, cov, n, len(pts), rmse, degenerate, weak, eigs, iterations)
+
+    def _smoothed_information(self, pts, slots, pose, local_map, scale):
+        """Information matrix averaged over poses a probe step away in each direction.
+
+        At the optimum most points sit on their map cells (zero distance, no gradient); the
+        curvature of the cost just around the optimum is what constrains the pose."""
+        H = np.zeros((3, 3))
+        for k in range(3):
+            for sign in (-1.0, 1.0):
+                probe = pose.copy()
+                probe[k] += sign * self.probe_m / scale[k]
+                nearest, valid = local_map.nearest(_to_world(pts, probe), slots)
+                Hk, *_ = _normal_equations(pts[valid], nearest[valid], probe, self.gate_end_m,
+                                           self.huber_m)
+                H += Hk / 6.0
+        return H
+
+def _to_world(pts_v: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    return np.stack([c * pts_v[:, 0] - s * pts_v[:, 1] + pose[0],
+                     s * pts_v[:, 0] + c * pts_v[:, 1] + pose[1]], axis=1)
+
+
+def _scaled_eig(H: np.ndarray, scale: np.ndarray):
+    Hs = H / np.outer(scale, scale)  # information over (x, y, lever * yaw)
+    eigs, vecs = np.linalg.eigh(Hs)
+    return eigs, vecs
+
+
+def _constrained_step(H, g, scale, ratio):
+    """Gauss-Newton step solved only in the well-constrained eigen-directions."""
+    eigs, vecs = _scaled_eig(H, scale)
+    top = max(eigs[-1], 1e-12)
+    gs = g / scale
+    step_s = np.zeros(3)
+    for k in range(3):
+        if eigs[k] > ratio * top:
+            step_s -= vecs[:, k] * (vecs[:, k] @ gs) / eigs[k]
+    return step_s / scale
+
+
+def _covariance(H, scale, ratio):
+    """Inverse information (unit variance), plus an inflation for unconstrained directions."""
+    eigs, vecs = _scaled_eig(H, scale)
+    top = max(eigs[-1], 1e-12)
+    var = np.empty(3)
+    degenerate = False
+    for k in range(3):
+        if eigs[k] > ratio * top:
+            var[k] = 1.0 / eigs[k]
+        else:
+            var[k] = np.inf
+            degenerate = True
+    cov_s = (vecs * np.where(np.isinf(var), 0.0, var)) @ vecs.T
+    cov = cov_s / np.outer(scale, scale)
+    weak = vecs[:, 0] / scale
+    weak = weak / max(np.linalg.norm(weak), 1e-12)
+    inflation = np.zeros((3, 3))
+    for k in np.flatnonzero(np.isinf(var)):
+        v = vecs[:, k] / scale
+        inflation += DEGENERATE_VARIANCE * np.outer(v, v) / max(v @ v, 1e-12)
+    return cov, inflation, eigs / top, weak, degenerate
