@@ -106,6 +106,8 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--scenario", choices=["default", "repaint"], default="default")
             p.add_argument("--chaos", action="store_true", help="kill and restart a shard and a vehicle")
             p.add_argument("--small", action="store_true", help="a short drive (for tests)")
+        else:
+            p.add_argument("--listen", default=None, help="router endpoint (default tcp/127.0.0.1:7447)")
         _common(p)
 
     p = sub.add_parser("bench", help="benchmark every stage and write bench.json")

@@ -1,0 +1,201 @@
+"""The demo's evaluation: merged tiles vs the world's ground truth, codec fidelity, map size,
+the map digest, localization errors and the repaint check. Pure functions on arrays.
+
+Rasters are world-aligned mosaics of tiles (0.1 m cells, row = north) whose south-west corner is
+the south-west corner of the lowest tile; trajectories are (x, y, yaw) in the world frame."""
+
+import hashlib
+import struct
+
+import cv2
+import numpy as np
+
+from common.classes import MARKINGS, NAMES, Cls
+from common.evaluation import precision_recall
+from common.geometry import wrap_angle
+from common.grid import CELL_M, TILE_CELLS, tile_origin_m
+
+# The paper's numbers (Qin et al. 2021, Table I and Sec. V-B), for the printed comparison.
+PAPER = {
+    "x_m": {"mean": 0.043, "p90": 0.104},
+    "y_m": {"mean": 0.040, "p90": 0.092},
+    "yaw_deg": {"mean": 0.124, "p90": 0.240},
+    "kb_per_km": 36.0,
+}
+# Repaint rule: the map follows when it shows >= 50 % of the new line and <= 20 % of the old one.
+FOLLOW_NEW_MIN = 0.5
+FOLLOW_OLD_MAX = 0.2
+
+
+class Mosaic:
+    """Tiles pasted into one raster; `origin_m` is its south-west corner, rows grow north."""
+
+    def __init__(self, tiles: list[tuple[int, int]]):
+        t = np.array(tiles, np.int64).reshape(-1, 2)
+        self.tx0, self.ty0 = (int(v) for v in t.min(axis=0))
+        self.ntx, self.nty = (int(v) for v in t.max(axis=0) - t.min(axis=0) + 1)
+        self.origin_m = tile_origin_m((self.tx0, self.ty0))
+        self.shape = (self.nty * TILE_CELLS, self.ntx * TILE_CELLS)
+
+    def slot(self, tile) -> tuple[slice, slice]:
+        r0 = (tile[1] - self.ty0) * TILE_CELLS
+        c0 = (tile[0] - self.tx0) * TILE_CELLS
+        return slice(r0, r0 + TILE_CELLS), slice(c0, c0 + TILE_CELLS)
+
+    def paste(self, tiles, rasters) -> np.ndarray:
+        out = np.zeros(self.shape, np.uint8)
+        for tile, raster in zip(tiles, rasters, strict=True):
+            out[self.slot(tile)] = raster
+        return out
+
+    def to_cells(self, xy_m: np.ndarray) -> np.ndarray:
+        """World points (N, 2) -> float (col, row) in the mosaic."""
+        return (np.asarray(xy_m, float) - self.origin_m) / CELL_M
+
+
+def truth_mosaic(world, mosaic: Mosaic, tiles) -> np.ndarray:
+    """Ground truth of the held tiles (other cells 0)."""
+    return mosaic.paste(tiles, [world.rasterize(*tile_origin_m(t), TILE_CELLS, TILE_CELLS)
+                                for t in tiles])
+
+
+def roi_footprint(mosaic: Mosaic, poses_xyyaw: np.ndarray, x_min_m: float, length_m: float,
+                  width_m: float) -> np.ndarray:
+    """Cells the camera's IPM region of interest swept along true poses: what could be mapped."""
+    corners_v = np.array([[x_min_m, -width_m / 2], [x_min_m + length_m, -width_m / 2],
+                          [x_min_m + length_m, width_m / 2], [x_min_m, width_m / 2]])
+    mask = np.zeros(mosaic.shape, np.uint8)
+    polys = []
+    for x, y, yaw in poses_xyyaw[np.all(np.isfinite(poses_xyyaw), axis=1)]:
+        c, s = np.cos(yaw), np.sin(yaw)
+        world = corners_v @ np.array([[c, s], [-s, c]]) + (x, y)
+        polys.append(np.round(mosaic.to_cells(world) * 16).astype(np.int32))
+    if polys:
+        cv2.fillPoly(mask, polys, 1, lineType=cv2.LINE_8, shift=4)
+    return mask.astype(bool)
+
+
+def map_quality(pred: np.ndarray, truth: np.ndarray, observed: np.ndarray) -> dict:
+    """Per marking class: precision of the map's cells against the truth, recall of the true
+    cells inside the observed area (0.1 m tolerance)."""
+    truth_seen = np.where(observed, truth, 0)
+    out = {}
+    for c in MARKINGS:
+        precision, _, n_pred, _ = precision_recall(pred, truth, int(c))
+        _, recall, _, n_true = precision_recall(pred, truth_seen, int(c))
+        out[NAMES[c]] = {"precision": _num(precision), "recall": _num(recall),
+                         "cells_map": n_pred, "cells_true_observed": n_true}
+    return out
+
+
+def codec_fidelity(decoded: np.ndarray, raw: np.ndarray) -> dict:
+    """Per marking class: precision/recall of the decoded map against the merged (raw) map."""
+    out = {}
+    for c in MARKINGS:
+        p, r, _, _ = precision_recall(decoded, raw, int(c))
+        out[NAMES[c]] = {"codec_precision": _num(p), "codec_recall": _num(r)}
+    return out
+
+
+def map_sizes(compressed: list[bytes], raw_tiles: np.ndarray) -> dict:
+    """Bytes of the map as contours (ours), as a sparse grid (uint32 cell + uint8 class per
+    labelled cell) and as one PNG per tile."""
+    png = sum(len(cv2.imencode(".png", r)[1]) for r in raw_tiles)
+    return {"compressed_bytes": int(sum(len(b) for b in compressed)),
+            "raw_sparse_bytes": int(np.count_nonzero(raw_tiles)) * 5,
+            "png_bytes": int(png)}
+
+
+def map_digest(tiles, raw_tiles) -> str:
+    """sha256 over the tiles sorted by id: (tx, ty) as two int64 + the 512x512 label bytes."""
+    h = hashlib.sha256()
+    for i in sorted(range(len(tiles)), key=lambda k: tuple(tiles[k])):
+        h.update(struct.pack("<qq", *tiles[i]))
+        h.update(np.ascontiguousarray(raw_tiles[i], np.uint8).tobytes())
+    return h.hexdigest()
+
+
+def km_mapped(world, mosaic: Mosaic, observed: np.ndarray, step_m: float = 1.0) -> float:
+    """The world's km of road times the fraction of its lane centre lines inside the observed
+    area (each road counted once, as world.km_of_road does)."""
+    total, seen = 0, 0
+    for route in world.routes:
+        pts = _resample(np.asarray(route, float), step_m)
+        cr = np.floor(mosaic.to_cells(pts)).astype(np.int64)
+        inside = (cr[:, 0] >= 0) & (cr[:, 1] >= 0) & (cr[:, 0] < mosaic.shape[1]) & (
+            cr[:, 1] < mosaic.shape[0])
+        total += len(pts)
+        seen += int(observed[cr[inside, 1], cr[inside, 0]].sum())
+    return float(world.km_of_road * seen / total) if total else 0.0
+
+
+def _resample(poly: np.ndarray, step_m: float) -> np.ndarray:
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if len(poly) < 2 or s[-1] <= 0:
+        return poly[:1]
+    t = np.arange(0.0, s[-1], step_m)
+    return np.stack([np.interp(t, s, poly[:, 0]), np.interp(t, s, poly[:, 1])], axis=1)
+
+
+# -- localization --------------------------------------------------------------------------------
+
+
+def read_tum(text: str) -> np.ndarray:
+    """TUM trajectory lines `t x y z qx qy qz qw` -> (N, 4) of (t_s, x, y, yaw)."""
+    rows = []
+    for line in text.splitlines():
+        if not line.strip() or line.startswith("#"):
+            continue
+        t, x, y, _z, qx, qy, qz, qw = (float(v) for v in line.split()[:8])
+        yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
+        rows.append((t, x, y, yaw))
+    return np.array(rows, float).reshape(-1, 4)
+
+
+def interp_poses(t_query_s: np.ndarray, t_s: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """Linear interpolation of (x, y, yaw) at query times (yaw unwrapped first)."""
+    yaw = np.unwrap(poses[:, 2])
+    return np.stack([np.interp(t_query_s, t_s, poses[:, 0]), np.interp(t_query_s, t_s, poses[:, 1]),
+                     wrap_angle(np.interp(t_query_s, t_s, yaw))], axis=1)
+
+
+def pose_errors(est: np.ndarray, truth: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-pose errors: x, y (world), lateral, longitudinal (vehicle frame of the truth), yaw."""
+    d = est[:, :2] - truth[:, :2]
+    c, s = np.cos(truth[:, 2]), np.sin(truth[:, 2])
+    return {"x_m": d[:, 0], "y_m": d[:, 1], "longitudinal_m": c * d[:, 0] + s * d[:, 1],
+            "lateral_m": -s * d[:, 0] + c * d[:, 1],
+            "yaw_deg": np.degrees(wrap_angle(est[:, 2] - truth[:, 2]))}
+
+
+def error_stats(values: np.ndarray) -> dict:
+    a = np.abs(np.asarray(values, float))
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return {"mean": None, "p90": None, "max": None}
+    return {"mean": float(a.mean()), "p90": float(np.percentile(a, 90)), "max": float(a.max())}
+
+
+# -- repaint ----------------------------------------------------------------------------------
+
+
+def repaint_masks(old_truth: np.ndarray, new_truth: np.ndarray, observed: np.ndarray):
+    """Lane-line cells only the old paint has, and only the new paint has (observed area)."""
+    old = (old_truth == Cls.LANE_LINE) & (new_truth != Cls.LANE_LINE) & observed
+    new = (new_truth == Cls.LANE_LINE) & (old_truth != Cls.LANE_LINE) & observed
+    return old, new
+
+
+def follow_state(pred: np.ndarray, old_only: np.ndarray, new_only: np.ndarray) -> dict:
+    """How much of the new line the map shows (0.1 m tolerance) and how much of the old one."""
+    lane = pred == Cls.LANE_LINE
+    near = cv2.dilate(lane.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    new_shown = float((near & new_only).sum() / max(1, new_only.sum()))
+    old_shown = float((lane & old_only).sum() / max(1, old_only.sum()))
+    return {"new_shown": new_shown, "old_shown": old_shown,
+            "followed": bool(new_shown >= FOLLOW_NEW_MIN and old_shown <= FOLLOW_OLD_MAX)}
+
+
+def _num(v):
+    return None if v is None or not np.isfinite(v) else float(v)
