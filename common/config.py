@@ -82,12 +82,22 @@ class DemoConfig:
 
 
 @dataclass(frozen=True)
+class SegmentationConfig:
+    """Which segmenter runs on camera frames (common.segmentation.get_segmenter)."""
+
+    kind: str = "onnx"  # "onnx" (the packaged model or model_path) | "truth" (simulated logs)
+    model_path: str = ""  # empty: common/models/roadseg.onnx shipped with the package
+    intra_op_threads: int = 1
+
+
+@dataclass(frozen=True)
 class RoadmapConfig:
     bus: BusConfig = field(default_factory=BusConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     grid: GridConfig = field(default_factory=GridConfig)
     roi: RoiConfig = field(default_factory=RoiConfig)
     demo: DemoConfig = field(default_factory=DemoConfig)
+    segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
 
 
 # -- loading -----------------------------------------------------------------------------------

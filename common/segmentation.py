@@ -196,9 +196,13 @@ class OnnxSegmenter(Segmenter):
 
 def get_segmenter(kind: str = "onnx", **kw) -> Segmenter:
     """Factory: "truth" -> GroundTruthSegmenter(**kw); "onnx" -> OnnxSegmenter(**kw) with the
-    packaged model unless `model_path` is given."""
+    packaged model unless a non-empty `model_path` is given. With SegmentationConfig `seg`:
+    get_segmenter(seg.kind, model_path=seg.model_path, intra_op_threads=seg.intra_op_threads)
+    for "onnx"."""
     if kind == "truth":
         return GroundTruthSegmenter(**kw)
     if kind == "onnx":
+        if not kw.get("model_path"):
+            kw.pop("model_path", None)
         return OnnxSegmenter(**kw)
     raise ConfigError(f"unknown segmenter {kind!r} (expected 'onnx' or 'truth')")
