@@ -1,0 +1,92 @@
+"""`roadmap bench`: run every stage's benchmark (bench/bench_*.py, each `run(quick) -> dict`)
+and write OUT/bench.json in the shape of DESIGN.md (cores, python, onnxruntime; stages; merge;
+scaling; mapper). A benchmark that is missing or fails is recorded with its error."""
+
+import importlib.util
+import json
+import logging
+import os
+import platform
+import sys
+import time
+import traceback
+from pathlib import Path
+
+logger = logging.getLogger("roadmap.bench")
+
+BENCH_DIR = Path(__file__).resolve().parents[2] / "bench"
+BENCHMARKS = ("render", "segmentation", "vehicle", "merger", "codec", "localizer")
+SECTIONS = ("stages", "merge", "scaling", "mapper")
+
+
+def load_bench(name: str, bench_dir: Path = BENCH_DIR):
+    """Import bench/bench_<name>.py by path (bench/ is not a package)."""
+    path = bench_dir / f"bench_{name}.py"
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist")
+    spec = importlib.util.spec_from_file_location(f"roadmap_bench_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def run_one(name: str, quick: bool, bench_dir: Path = BENCH_DIR) -> dict:
+    """{"ok": True, "result": {...}, "wall_s"} or {"ok": False, "error": "..."}."""
+    t = time.monotonic()
+    try:
+        result = load_bench(name, bench_dir).run(quick)
+        if not isinstance(result, dict):
+            raise TypeError(f"run() returned {type(result).__name__}, expected dict")
+        return {"ok": True, "result": result, "wall_s": round(time.monotonic() - t, 2)}
+    except Exception as exc:  # noqa: BLE001 -- one failing benchmark must not stop the others
+        logger.warning("bench_%s failed: %s", name, exc)
+        return {"ok": False, "error": f"{type(exc).__name__}: {exc}",
+                "traceback": traceback.format_exc()[-2000:], "wall_s": round(time.monotonic() - t, 2)}
+
+
+def merge_results(runs: dict[str, dict]) -> dict:
+    """Contract sections from the benchmarks' dicts: a benchmark may return the sections
+    directly ({"stages": {...}, "merge": {...}}) or flat stage entries (merged into stages)."""
+    out = {s: {} for s in SECTIONS}
+    for run in runs.values():
+        if not run["ok"]:
+            continue
+        for key, value in run["result"].items():
+            if key in SECTIONS and isinstance(value, dict):
+                out[key].update(value)
+            else:
+                out["stages"][key] = value
+    return out
+
+
+def environment() -> dict:
+    try:
+        import onnxruntime
+
+        ort = onnxruntime.__version__
+    except ImportError:
+        ort = None
+    return {"cores": os.cpu_count(), "python": platform.python_version(), "onnxruntime": ort,
+            "platform": platform.platform(), "machine": platform.machine()}
+
+
+def run_all(quick: bool, names=BENCHMARKS, bench_dir: Path = BENCH_DIR) -> dict:
+    runs = {}
+    for name in names:
+        logger.info("bench_%s ...", name)
+        runs[name] = run_one(name, quick, bench_dir)
+    return {**environment(), "quick": quick, **merge_results(runs),
+            "benchmarks": {n: {k: v for k, v in r.items() if k != "result"} for n, r in runs.items()},
+            "raw": {n: r.get("result") for n, r in runs.items()}}
+
+
+def bench_command(args, cfg) -> int:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    report = run_all(args.quick)
+    (out / "bench.json").write_text(json.dumps(report, indent=1, default=str))
+    failed = [n for n, r in report["benchmarks"].items() if not r["ok"]]
+    sys.stdout.write(f"bench: {len(BENCHMARKS) - len(failed)}/{len(BENCHMARKS)} benchmarks ran"
+                     + (f" (failed: {', '.join(failed)})" if failed else "")
+                     + f"; wrote {out / 'bench.json'}\n")
+    return 0
