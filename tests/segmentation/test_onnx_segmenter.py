@@ -1,0 +1,88 @@
+"""OnnxSegmenter runtime: the packaged model, head mapping, factory, and the real TwinLiteNet."""
+
+import numpy as np
+import pytest
+
+from common.classes import NUM_CLASSES, Cls
+from common.errors import ConfigError
+from common.segmentation import (
+    DEFAULT_MODEL,
+    GroundTruthSegmenter,
+    OnnxSegmenter,
+    get_segmenter,
+)
+
+needs_model = pytest.mark.skipif(not DEFAULT_MODEL.is_file(), reason="no packaged model yet")
+
+
+@needs_model
+def test_packaged_model_labels_have_image_shape_and_our_classes(rng):
+    seg = get_segmenter("onnx")
+    image = rng.integers(0, 255, (360, 640, 3), dtype=np.uint8)
+    labels = seg.segment(image)
+    assert labels.shape == (360, 640) and labels.dtype == np.uint8
+    assert labels.max() < NUM_CLASSES
+
+
+@needs_model
+def test_packaged_model_describes_its_input_in_metadata():
+    seg = OnnxSegmenter()
+    assert seg.input_size == (320, 176)
+    assert seg.scale == pytest.approx(1.0 / 255.0)
+    assert seg.name == "roadseg"
+
+
+@needs_model
+def test_head_map_remaps_and_drops_classes(rng):
+    image = rng.integers(0, 255, (176, 320, 3), dtype=np.uint8)
+    image[100:, :] = 90  # some road-like area
+    plain = OnnxSegmenter().segment(image)
+    # model class 2 (lane line) -> ground sign, every other class -> 0
+    remapped = OnnxSegmenter(head_map={"logits": {2: int(Cls.GROUND_SIGN)}}).segment(image)
+    np.testing.assert_array_equal(remapped == Cls.GROUND_SIGN, plain == Cls.LANE_LINE)
+    assert set(np.unique(remapped)) <= {0, int(Cls.GROUND_SIGN)}
+
+
+@needs_model
+def test_head_map_rejects_unknown_heads_and_classes():
+    with pytest.raises(ConfigError, match="no output"):
+        OnnxSegmenter(head_map={"da": {1: 1}})
+    with pytest.raises(ConfigError, match="outside"):
+        OnnxSegmenter(head_map={"logits": {1: 9}})
+
+
+def test_factory_picks_the_strategy():
+    assert isinstance(get_segmenter("truth", seed=3), GroundTruthSegmenter)
+    with pytest.raises(ConfigError):
+        get_segmenter("yolo")
+    with pytest.raises(ConfigError, match="not found"):
+        get_segmenter("onnx", model_path="/nonexistent/model.onnx")
+
+
+@pytest.mark.shared_data
+def test_twinlitenet_finds_lane_lines_in_the_lower_half_of_a_real_frame(shared_data):
+    from services.segtrain.external import (
+        assumed_camera,
+        lane_ground_points,
+        read_rgb,
+        twinlitenet_segmenter,
+    )
+
+    model = shared_data / "models" / "twinlitenet" / "twinlitenet.onnx"
+    frame = shared_data / "comma2k19" / "segment40" / "preview.png"
+    if not model.is_file() or not frame.is_file():
+        pytest.skip("TwinLiteNet or the comma2k19 preview frame is missing")
+    rgb = read_rgb(frame)
+    labels = twinlitenet_segmenter(shared_data, threads=2).segment(rgb)
+    assert labels.shape == rgb.shape[:2]
+    h = labels.shape[0]
+    lane = labels == Cls.LANE_LINE
+    assert lane[h // 2:].sum() > 2000  # painted lines on the road ahead
+    assert lane[: int(0.4 * h)].sum() < 0.05 * lane.sum()  # not in the sky
+    assert (labels == Cls.ROAD).sum() > 0.05 * labels.size
+    # projected with the comma2k19 calibration, lane paint lies a few metres left/right ahead
+    ground = lane_ground_points(labels, assumed_camera("comma2k19", rgb.shape[1], rgb.shape[0]))
+    near = ground[ground[:, 0] < 25.0]
+    assert len(near) > 1000
+    assert np.all(near[:, 0] > 3.0)
+    assert np.median(np.abs(near[:, 1])) < 6.0
