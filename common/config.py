@@ -91,6 +91,50 @@ class SegmentationConfig:
 
 
 @dataclass(frozen=True)
+class LocalizerConfig:
+    """User-end localizer: map access, point thinning, ICP, EKF, initialization."""
+
+    map_codec: str = "contour"  # "contour" (compressed tiles) | "raw" (uncompressed, comparison)
+    segmenter: str = "truth"  # "truth" (simulated logs: corrupted true labels) | "onnx"
+    ipm_stride: int = 2  # take every n-th pixel row and column of the label image
+    max_points: int = 700  # points per frame into ICP
+    road_fraction: float = 0.25  # share of road-surface points among them
+    icp_iterations: int = 12
+    icp_gate_start_m: float = 1.5
+    icp_gate_end_m: float = 0.4
+    icp_huber_m: float = 0.1
+    icp_cov_scale: float = 4.0
+    gnss_inflate: float = 1.5  # consumer GNSS has a slowly varying bias: trust it less
+    speed_sigma_rel: float = 0.02
+    yaw_rate_sigma_dps: float = 0.3
+    max_position_sigma_m: float = 1.0  # integrity: ok False above this
+    init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
+    init_travel_m: float = 12.0  # metres of frames gathered before the coarse search
+    init_frames: int = 30
+    reinit_bad_frames: int = 30
+    fetch_radius_m: float = 40.0  # tiles within this distance of the car are fetched
+    prefetch_ahead_m: float = 60.0  # and these along the direction of travel
+    cache_tiles: int = 25
+    publish: bool = True  # publish roadmap/pose/<vehicle>
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """On-vehicle mapper (services/vehicle): pose settling, calibration, sealing, upload."""
+
+    settle_lag_s: float = 1.0  # a frame's points wait for a good GNSS fix this much later
+    max_wait_s: float = 120.0  # ... but never longer than this (very long outages)
+    calib_window_s: float = 5.0  # odometry scale / gyro bias calibration window
+    seal_every_frames: int = 100  # committed frames per patch sequence number
+    ipm_stride: int = 1  # pixel subsampling of the IPM lookup
+    upload_batch: int = 16  # patches per IngestBatch
+    upload_timeout_s: float = 5.0  # per ingest query
+    backoff_min_s: float = 0.05
+    backoff_max_s: float = 2.0
+    truth_seed: int = 0  # GroundTruthSegmenter corruption seed (deterministic re-mapping)
+
+
+@dataclass(frozen=True)
 class RoadmapConfig:
     bus: BusConfig = field(default_factory=BusConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
@@ -98,6 +142,8 @@ class RoadmapConfig:
     roi: RoiConfig = field(default_factory=RoiConfig)
     demo: DemoConfig = field(default_factory=DemoConfig)
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
 
 
 # -- loading -----------------------------------------------------------------------------------
