@@ -60,8 +60,9 @@ class World:
                 # cell centres sample the polygon: shift by half a cell
                 q = (p - [x0_m, y0_m]) * scale - (1 << SUBPIXEL_BITS) * 0.5
                 polys.append(np.round(q).astype(np.int32))
-            if polys:
-                cv2.fillPoly(raster, polys, int(cls), lineType=cv2.LINE_8, shift=SUBPIXEL_BITS)
+            # one call per polygon: a single fillPoly call fills overlaps even-odd (holes)
+            for poly in polys:
+                cv2.fillPoly(raster, [poly], int(cls), lineType=cv2.LINE_8, shift=SUBPIXEL_BITS)
         return raster
 
     def rasterize_all(self, margin_m: float = 2.0, cell_m: float = CELL_M):
