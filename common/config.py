@@ -105,7 +105,7 @@ class LocalizerConfig:
     icp_huber_m: float = 0.1
     icp_cov_scale: float = 4.0
     gnss_inflate: float = 1.5  # consumer GNSS has a slowly varying bias: trust it less
-    speed_sigma_rel: float = 0.02
+    speed_sigma_rel: float = 0.005  # the odometry scale itself is estimated
     yaw_rate_sigma_dps: float = 0.3
     max_position_sigma_m: float = 1.0  # integrity: ok False above this
     init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
