@@ -79,3 +79,35 @@ def fill_cache(cache, world: World):
     for tile, labels in world_tiles(world).items():
         cache.put(tile, 1, labels)
     return cache
+
+
+def synthetic_drive(rng, *, duration_s=20.0, speed_mps=10.0, start=(12.0, 28.25, 0.0),
+                    frame_hz=10.0, imu_hz=100.0, gnss_hz=5.0, odom_scale=1.01,
+                    gyro_bias_rps=math.radians(0.05), gnss_bias_m=(2.0, -1.5),
+                    gnss_sigma_m=1.5, weave_m=0.6):
+    """A production drive along the straight road with a gentle lane weave: dict of streams
+    (times in ns) as in a drive log, with the true pose at frames."""
+    dt = 1.0 / imu_hz
+    n = int(duration_s * imu_hz)
+    t = np.arange(n) * dt
+    # lateral weave: y(t) = y0 + weave * sin(2 pi t / 10)
+    x = start[0] + speed_mps * t
+    y = start[1] + weave_m * np.sin(2 * np.pi * t / 10.0)
+    vy = weave_m * 2 * np.pi / 10.0 * np.cos(2 * np.pi * t / 10.0)
+    yaw = np.arctan2(vy, speed_mps) + start[2]
+    speed = np.hypot(speed_mps, vy)
+    yaw_rate = np.gradient(np.unwrap(yaw), dt)
+    t_ns = (t * 1e9).astype(np.int64)
+    truth = np.stack([x, y, yaw], axis=1)
+    fidx = np.arange(0, n, int(imu_hz / frame_hz))
+    gidx = np.arange(0, n, int(imu_hz / gnss_hz))
+    bias = np.asarray(gnss_bias_m) + np.cumsum(rng.normal(0, 0.02, (len(gidx), 2)), axis=0)
+    return {
+        "frame_t_ns": t_ns[fidx], "frame_pose_true": truth[fidx],
+        "odom_t_ns": t_ns, "odom_speed_mps": speed * odom_scale + rng.normal(0, 0.02, n),
+        "imu_t_ns": t_ns, "imu_yaw_rate_rps": yaw_rate + gyro_bias_rps + rng.normal(0, 0.002, n),
+        "gnss_t_ns": t_ns[gidx],
+        "gnss_xy_m": truth[gidx, :2] + bias + rng.normal(0, gnss_sigma_m, (len(gidx), 2)),
+        "gnss_sigma_m": np.full(len(gidx), gnss_sigma_m), "gnss_ok": np.ones(len(gidx), bool),
+        "truth_t_ns": t_ns, "truth_pose": truth,
+    }

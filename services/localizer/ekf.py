@@ -1,0 +1,143 @@
+"""EKF over the planar pose (x, y, yaw) in the world frame plus the wheel-odometry scale factor
+(filterpy's ExtendedKalmanFilter).
+
+Predict from wheel speed (m/s, times the estimated scale) and gyro yaw rate (rad/s); update with an ICP pose (its 3x3
+covariance) or a consumer GNSS position. Every update is gated by the Mahalanobis distance of its
+innovation (chi-square); angle residuals are wrapped. `ok` is the integrity flag: False when the
+position uncertainty grows past a bound or too many updates in a row were rejected."""
+
+import math
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+
+from common.geometry import wrap_angle
+
+CHI2_99 = {2: 9.21, 3: 11.34}
+
+
+def _pose_residual(a, b):
+    r = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
+    if r.shape[0] == 3:
+        r[2] = float(wrap_angle(r[2]))
+    return r
+
+
+class _PlanarEKF(ExtendedKalmanFilter):
+    """filterpy EKF whose prediction is the unicycle motion model."""
+
+    def predict_x(self, u=None):
+        v, w, dt = u
+        x = self.x.reshape(-1)
+        yaw_mid = x[2] + 0.5 * w * dt
+        d = x[3] * v * dt
+        x_new = np.array([x[0] + d * math.cos(yaw_mid), x[1] + d * math.sin(yaw_mid),
+                          float(wrap_angle(x[2] + w * dt)), x[3]])
+        self.x = x_new.reshape(self.x.shape)
+
+
+class PoseFilter:
+    """(x, y, yaw, odometry scale) EKF with gating and an integrity flag; numpy in and out."""
+
+    def __init__(self, *, speed_sigma_rel: float = 0.005, speed_sigma_mps: float = 0.05,
+                 yaw_rate_sigma_rps: float = math.radians(0.3), gate_prob_chi2: dict | None = None,
+                 max_position_sigma_m: float = 1.0, max_rejections: int = 20,
+                 scale_sigma0: float = 0.03, scale_walk_per_s: float = 1e-3):
+        self.speed_sigma_rel = speed_sigma_rel
+        self.speed_sigma_mps = speed_sigma_mps
+        self.yaw_rate_sigma_rps = yaw_rate_sigma_rps
+        self.chi2 = gate_prob_chi2 or CHI2_99
+        self.max_position_sigma_m = max_position_sigma_m
+        self.max_rejections = max_rejections
+        self.scale_sigma0, self.scale_walk_per_s = scale_sigma0, scale_walk_per_s
+        self.ekf = _PlanarEKF(dim_x=4, dim_z=3)
+        self.ekf.x = np.array([[0.0], [0.0], [0.0], [1.0]])
+        self.initialized = False
+        self.rejections = 0
+        self.last_nis = 0.0
+
+    # -- state ------------------------------------------------------------------------------
+
+    def reset(self, pose: np.ndarray, cov: np.ndarray, scale: float | None = None) -> None:
+        """Start from a pose and its 3x3 covariance; the odometry scale is kept across resets."""
+        scale = float(self.ekf.x[3, 0]) if scale is None else float(scale)
+        self.ekf.x = np.array([*np.asarray(pose, dtype=float)[:3], scale]).reshape(4, 1)
+        self.ekf.P = np.zeros((4, 4))
+        self.ekf.P[:3, :3] = np.asarray(cov, dtype=float)
+        self.ekf.P[3, 3] = self.scale_sigma0**2
+        self.initialized = True
+        self.rejections = 0
+
+    @property
+    def pose(self) -> np.ndarray:
+        return self.ekf.x.reshape(-1)[:3].copy()
+
+    @property
+    def cov(self) -> np.ndarray:
+        return self.ekf.P[:3, :3].copy()
+
+    @property
+    def odometry_scale(self) -> float:
+        return float(self.ekf.x[3, 0])
+
+    @property
+    def position_sigma_m(self) -> float:
+        return float(math.sqrt(max(np.linalg.eigvalsh(self.ekf.P[:2, :2])[-1], 0.0)))
+
+    @property
+    def ok(self) -> bool:
+        return (self.initialized and self.position_sigma_m <= self.max_position_sigma_m
+                and self.rejections < self.max_rejections)
+
+    # -- verbs ------------------------------------------------------------------------------
+
+    def predict(self, speed_mps: float, yaw_rate_rps: float, dt_s: float) -> None:
+        if not self.initialized or dt_s <= 0:
+            return
+        _, _, yaw, k = self.ekf.x.reshape(-1)
+        yaw_mid = yaw + 0.5 * yaw_rate_rps * dt_s
+        c, s = math.cos(yaw_mid), math.sin(yaw_mid)
+        d = k * speed_mps * dt_s
+        # Jacobians of the motion model w.r.t. the state (x, y, yaw, scale) and inputs (v, w)
+        self.ekf.F = np.array([[1.0, 0.0, -d * s, speed_mps * dt_s * c],
+                               [0.0, 1.0, d * c, speed_mps * dt_s * s],
+                               [0.0, 0.0, 1.0, 0.0],
+                               [0.0, 0.0, 0.0, 1.0]])
+        G = np.array([[k * dt_s * c, -0.5 * d * dt_s * s],
+                      [k * dt_s * s, 0.5 * d * dt_s * c],
+                      [0.0, dt_s],
+                      [0.0, 0.0]])
+        sv = self.speed_sigma_rel * abs(speed_mps) + self.speed_sigma_mps
+        Q = G @ np.diag([sv**2, self.yaw_rate_sigma_rps**2]) @ G.T
+        Q[3, 3] = self.scale_walk_per_s**2 * dt_s
+        self.ekf.Q = Q
+        self.ekf.predict(u=(speed_mps, yaw_rate_rps, dt_s))
+
+    def update_pose(self, pose: np.ndarray, cov: np.ndarray) -> bool:
+        """ICP pose measurement; False if gated out."""
+        return self._update(np.asarray(pose, float), np.eye(3, 4), np.asarray(cov, float))
+
+    def update_position(self, xy: np.ndarray, sigma_m: float) -> bool:
+        """GNSS position measurement (isotropic sigma); False if gated out."""
+        H = np.eye(2, 4)
+        return self._update(np.asarray(xy, float), H, np.eye(2) * sigma_m**2)
+
+    def innovation(self, z: np.ndarray, H: np.ndarray, R: np.ndarray):
+        """(innovation, its covariance, squared Mahalanobis distance) of a linear measurement."""
+        y = _pose_residual(z, H @ self.ekf.x.reshape(-1))
+        S = H @ self.ekf.P @ H.T + R
+        return y, S, float(y @ np.linalg.solve(S, y))
+
+    def _update(self, z, H, R) -> bool:
+        if not self.initialized:
+            return False
+        _, _, d2 = self.innovation(z, H, R)
+        self.last_nis = d2
+        if d2 > self.chi2[len(z)]:
+            self.rejections += 1
+            return False
+        self.rejections = 0
+        self.ekf.update(z.reshape(-1, 1), lambda _x: H, lambda x: H @ x, R=R,
+                        residual=lambda a, b: _pose_residual(a.reshape(-1), b.reshape(-1)).reshape(-1, 1))
+        self.ekf.x[2, 0] = float(wrap_angle(self.ekf.x[2, 0]))
+        return True

@@ -1,0 +1,243 @@
+"""The user-end localizer core: odometry prediction, GNSS and ICP corrections, initialization.
+
+One verb per input: `predict(t_ns, speed, yaw_rate)`, `correct_gnss(t_ns, xy, sigma)`,
+`process_frame(t_ns, points_v, classes) -> Estimate`. Frames: world ENU metres; points in the
+vehicle frame (x forward, y left). No I/O; the map is a TileCache filled by the node."""
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common.classes import Cls
+from common.geometry import se2_between, se2_compose, transform_points_2d
+from services.localizer.ekf import PoseFilter
+from services.localizer.icp import Icp, IcpResult
+from services.localizer.init import CoarseSearch, fine_overlap
+from services.localizer.map_cache import TileCache, class_slots
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class Estimate:
+    t_ns: int
+    pose: np.ndarray  # (x, y, yaw) T_world_vehicle; NaN before initialization
+    cov: np.ndarray  # 3x3
+    ok: bool
+    diag: dict = field(default_factory=dict)
+
+
+class Localizer:
+    def __init__(self, cache: TileCache, *, icp: Icp, ekf: PoseFilter, search: CoarseSearch,
+                 max_points: int = 700, road_fraction: float = 0.25, gnss_inflate: float = 1.5,
+                 gnss_min_sigma_m: float = 1.0, init_travel_m: float = 12.0, init_frames: int = 30,
+                 init_min_overlap: float = 0.5, init_sigma_m: float = 0.3,
+                 reinit_bad_frames: int = 30, seed: int = 0):
+        self.cache, self.icp, self.ekf, self.search = cache, icp, ekf, search
+        self.max_points, self.road_fraction = max_points, road_fraction
+        self.gnss_inflate, self.gnss_min_sigma_m = gnss_inflate, gnss_min_sigma_m
+        self.init_travel_m, self.init_frames = init_travel_m, init_frames
+        self.init_min_overlap, self.init_sigma_m = init_min_overlap, init_sigma_m
+        self.reinit_bad_frames = reinit_bad_frames
+        self._rng = np.random.default_rng(seed)
+        self.t_ns: int | None = None
+        self.odom = np.zeros(3)  # dead-reckoned pose in an arbitrary frame (for the init submap)
+        self.travel_m = 0.0
+        self.submap: deque = deque(maxlen=init_frames)  # (odom pose, points_v, classes)
+        self.gnss: deque = deque(maxlen=50)  # (odom pose, xy, sigma)
+        self.bad_frames = 0
+        self.inits = 0
+
+    # -- verbs ------------------------------------------------------------------------------
+
+    def predict(self, t_ns: int, speed_mps: float, yaw_rate_rps: float) -> None:
+        """Advance from the last input time to t_ns at the given speed and yaw rate."""
+        if self.t_ns is not None and t_ns > self.t_ns:
+            dt = (t_ns - self.t_ns) * 1e-9
+            self.odom = se2_compose(self.odom, _motion(speed_mps, yaw_rate_rps, dt))
+            self.travel_m += abs(speed_mps) * dt
+            self.ekf.predict(speed_mps, yaw_rate_rps, dt)
+        self.t_ns = t_ns if self.t_ns is None else max(self.t_ns, t_ns)
+
+    def correct_gnss(self, t_ns: int, xy_m: np.ndarray, sigma_m: float) -> bool:
+        """A consumer GNSS fix; used for initialization, then as a loose position measurement."""
+        sigma = max(float(sigma_m), self.gnss_min_sigma_m) * self.gnss_inflate
+        self.gnss.append((self.odom.copy(), np.asarray(xy_m, float), sigma))
+        if not self.ekf.initialized:
+            return False
+        return self.ekf.update_position(xy_m, sigma)
+
+    def process_frame(self, t_ns: int, points_v: np.ndarray, classes: np.ndarray) -> Estimate:
+        """Match one frame's semantic points (vehicle frame) to the map and fuse the result."""
+        pts, cls = self._thin(np.asarray(points_v, float), np.asarray(classes))
+        self.submap.append((self.odom.copy(), pts, cls))
+        if not self.ekf.initialized:
+            diag = self._try_initialize()
+            if not self.ekf.initialized:
+                return Estimate(t_ns, np.full(3, np.nan), np.eye(3) * 1e6, False, diag)
+        result = self.icp.register(pts, class_slots(cls), self.ekf.pose, self.cache)
+        accepted = result is not None and self.ekf.update_pose(result.pose, result.cov)
+        diag = self._frame_diag(result, accepted)
+        self._watch_integrity(result, accepted)
+        return Estimate(t_ns, self.ekf.pose, self.ekf.cov, self.ekf.ok, diag)
+
+    # -- steps ------------------------------------------------------------------------------
+
+    def _thin(self, pts, cls):
+        """Keep matched classes; cap road points to a share and the total to max_points."""
+        keep = class_slots(cls) >= 0
+        pts, cls = pts[keep], cls[keep]
+        road = np.flatnonzero(cls == Cls.ROAD)
+        paint = np.flatnonzero(cls != Cls.ROAD)
+        n_paint = min(len(paint), int(self.max_points * (1 - self.road_fraction)))
+        n_road = min(len(road), self.max_points - n_paint)
+        idx = np.concatenate([self._rng.choice(paint, n_paint, replace=False),
+                              self._rng.choice(road, n_road, replace=False)]).astype(np.int64)
+        return pts[idx], cls[idx]
+
+    def _try_initialize(self) -> dict:
+        """Coarse search + ICP refine on the submap of the last frames, once enough is seen."""
+        if not self.gnss or (self.travel_m < self.init_travel_m
+                             and len(self.submap) < self.submap.maxlen):
+            return {"state": "waiting"}
+        pts, cls = self._submap_points()
+        centre_of_yaw, heading = self._gnss_prior()
+        best = None
+        for cand in self.search.search(pts, cls, centre_of_yaw, heading, self.cache):
+            res = self.icp.register(pts, class_slots(cls), cand.pose, self.cache)
+            if res is None:
+                continue
+            overlap = fine_overlap(pts, class_slots(cls), res.pose, self.cache)
+            if best is None or overlap > best[0]:
+                best = (overlap, res)
+        if best is None or best[0] < self.init_min_overlap:
+            return {"state": "init_failed", "overlap": None if best is None else best[0]}
+        self._start_filter(best[1])
+        return {"state": "initialized", "overlap": best[0]}
+
+    def _start_filter(self, res: IcpResult) -> None:
+        cov = res.cov.copy()
+        cov[:2, :2] += np.eye(2) * self.init_sigma_m**2
+        cov[2, 2] += math.radians(1.0) ** 2
+        self.ekf.reset(res.pose, cov)
+        self.bad_frames = 0
+        self.inits += 1
+        logger.info("initialized at %s (init #%d)", np.round(res.pose, 2), self.inits)
+
+    def _submap_points(self):
+        """Points of the buffered frames in the current vehicle frame (odometry-chained)."""
+        out_p, out_c = [], []
+        for odom_k, pts, cls in self.submap:
+            rel = se2_between(self.odom, odom_k)
+            out_p.append(transform_points_2d(rel, pts))
+            out_c.append(cls)
+        return np.concatenate(out_p), np.concatenate(out_c)
+
+    def _gnss_prior(self):
+        """(centre of the search as a function of yaw, heading or None) from the buffered fixes.
+
+        With enough travel the GNSS track is aligned to the odometry track (2-D Procrustes),
+        which gives the heading; otherwise every yaw is searched and each fix is carried to now
+        by the odometry rotated by that yaw."""
+        odo = np.array([o[:2] for o, _, _ in self.gnss])
+        xy = np.array([g for _, g, _ in self.gnss])
+        if len(odo) >= 3 and np.hypot(*(odo - odo[0]).T).max() > 15.0:
+            theta, t = _align_2d(odo, xy)
+            c, s = math.cos(theta), math.sin(theta)
+            centre = np.array([[c, -s], [s, c]]) @ self.odom[:2] + t
+            return (lambda _yaw: centre), theta + self.odom[2]
+        rels = [se2_between(o, self.odom) for o, _, _ in self.gnss]
+
+        def centre_of_yaw(yaw):
+            out = [g + transform_points_2d(np.array([0.0, 0.0, yaw - r[2]]), r[None, :2])[0]
+                   for (_, g, _), r in zip(self.gnss, rels)]
+            return np.mean(out, axis=0)
+
+        return centre_of_yaw, None
+
+    def _frame_diag(self, res: IcpResult | None, accepted: bool) -> dict:
+        d = {"state": "tracking", "icp": res is not None, "accepted": bool(accepted),
+             "nis": round(self.ekf.last_nis, 3), "sigma_m": round(self.ekf.position_sigma_m, 4)}
+        if res is not None:
+            d.update(points=res.points, inliers=res.inliers, rmse_m=round(res.rmse_m, 4),
+                     degenerate=bool(res.degenerate), iterations=res.iterations)
+        return d
+
+    def _watch_integrity(self, res: IcpResult | None, accepted: bool) -> None:
+        """Re-initialize after a run of frames the filter could not trust."""
+        good = accepted or (res is not None and res.degenerate)
+        self.bad_frames = 0 if good and self.ekf.ok else self.bad_frames + 1
+        if self.bad_frames >= self.reinit_bad_frames:
+            logger.warning("localization diverged (%d bad frames): re-initializing", self.bad_frames)
+            self.ekf.initialized = False
+            self.submap.clear()
+            self.travel_m = 0.0
+
+
+def _motion(v: float, w: float, dt: float) -> np.ndarray:
+    """Unicycle increment (dx, dy, dyaw) in the vehicle frame over dt at speed v, yaw rate w."""
+    half = 0.5 * w * dt
+    return np.array([v * dt * math.cos(half), v * dt * math.sin(half), w * dt])
+
+
+def _align_2d(src: np.ndarray, dst: np.ndarray):
+    """Rotation angle and translation that best map points src (N, 2) onto dst (least squares)."""
+    ms, md = src.mean(axis=0), dst.mean(axis=0)
+    a, b = src - ms, dst - md
+    theta = math.atan2((a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]).sum(), (a * b).sum())
+    c, s = math.cos(theta), math.sin(theta)
+    return theta, md - np.array([[c, -s], [s, c]]) @ ms
+
+
+def get_localizer(lc, cache: TileCache, seed: int = 0) -> Localizer:
+    """LocalizerConfig -> Localizer with its ICP, EKF and coarse search."""
+    icp = Icp(iterations=lc.icp_iterations, gate_start_m=lc.icp_gate_start_m,
+              gate_end_m=lc.icp_gate_end_m, huber_m=lc.icp_huber_m, cov_scale=lc.icp_cov_scale)
+    ekf = PoseFilter(speed_sigma_rel=lc.speed_sigma_rel,
+                     yaw_rate_sigma_rps=math.radians(lc.yaw_rate_sigma_dps),
+                     max_position_sigma_m=lc.max_position_sigma_m)
+    search = CoarseSearch(radius_m=lc.init_radius_m, seed=seed)
+    return Localizer(cache, icp=icp, ekf=ekf, search=search, max_points=lc.max_points,
+                     road_fraction=lc.road_fraction, gnss_inflate=lc.gnss_inflate,
+                     init_travel_m=lc.init_travel_m, init_frames=lc.init_frames,
+                     reinit_bad_frames=lc.reinit_bad_frames, seed=seed)
+
+
+def replay(localizer: Localizer, streams: dict, frame_points, on_estimate=None) -> list[Estimate]:
+    """Feed a drive's sensor streams in time order; frame_points(i) -> (points_v, classes);
+    on_estimate(i, estimate) is called after every frame.
+
+    Odometry speed and gyro rate are held between their samples; every input first advances
+    the filter to its own time."""
+    events = _merged_events(streams)
+    speed, rate = 0.0, 0.0
+    out = []
+    for t_ns, kind, i in events:
+        localizer.predict(int(t_ns), speed, rate)
+        if kind == 0:
+            speed = float(streams["odom_speed_mps"][i])
+        elif kind == 1:
+            rate = float(streams["imu_yaw_rate_rps"][i])
+        elif kind == 2:
+            if bool(streams["gnss_ok"][i]):
+                localizer.correct_gnss(int(t_ns), streams["gnss_xy_m"][i],
+                                       float(streams["gnss_sigma_m"][i]))
+        else:
+            pts, cls = frame_points(i)
+            out.append(localizer.process_frame(int(t_ns), pts, cls))
+            if on_estimate is not None:
+                on_estimate(i, out[-1])
+    return out
+
+
+def _merged_events(streams: dict) -> np.ndarray:
+    """(t_ns, kind, index) rows sorted by time; kind 0 odom, 1 imu, 2 gnss, 3 frame."""
+    parts = []
+    for kind, key in enumerate(("odom_t_ns", "imu_t_ns", "gnss_t_ns", "frame_t_ns")):
+        t = np.asarray(streams[key], dtype=np.int64)
+        parts.append(np.stack([t, np.full(len(t), kind), np.arange(len(t))], axis=1))
+    ev = np.concatenate(parts)
+    return ev[np.lexsort((ev[:, 1], ev[:, 0]))]

@@ -1,0 +1,86 @@
+"""Localization accuracy against ground truth: the report's `localization` section.
+
+x/y errors are in the world frame, lateral/longitudinal in the true vehicle frame (x forward,
+y left), yaw in degrees; statistics (mean, p90, max of absolute errors) are taken over the frames
+after convergence. Convergence: the first frame from which the position error stays under the
+availability threshold for `hold_s`; availability: share of frames after it with error < 0.5 m
+(a frame without an estimate counts as unavailable)."""
+
+import numpy as np
+
+from common.geometry import wrap_angle
+
+
+def _stats(values: np.ndarray) -> dict:
+    if len(values) == 0:
+        return {"mean": None, "p90": None, "max": None}
+    a = np.abs(values)
+    return {"mean": float(a.mean()), "p90": float(np.percentile(a, 90)), "max": float(a.max())}
+
+
+def pose_errors(est: np.ndarray, true: np.ndarray) -> dict:
+    """Per-frame errors (arrays) of estimates (N, 3) against truth (N, 3)."""
+    dx, dy = est[:, 0] - true[:, 0], est[:, 1] - true[:, 1]
+    c, s = np.cos(true[:, 2]), np.sin(true[:, 2])
+    return {
+        "x_m": dx, "y_m": dy,
+        "longitudinal_m": c * dx + s * dy,
+        "lateral_m": -s * dx + c * dy,
+        "yaw_deg": np.degrees(wrap_angle(est[:, 2] - true[:, 2])),
+        "position_m": np.hypot(dx, dy),
+    }
+
+
+def convergence_index(position_err_m: np.ndarray, t_s: np.ndarray, threshold_m: float,
+                      hold_s: float) -> int | None:
+    """First frame from which the error stays below threshold for hold_s (None: never)."""
+    good = np.isfinite(position_err_m) & (position_err_m < threshold_m)
+    n = len(good)
+    # end of the current run of good frames, scanning from the back
+    run_end = np.empty(n, dtype=np.int64)
+    nxt = n
+    for i in range(n - 1, -1, -1):
+        if not good[i]:
+            nxt = i
+        run_end[i] = nxt
+    for i in np.flatnonzero(good):
+        last = run_end[i] - 1
+        if t_s[last] - t_s[i] >= hold_s or run_end[i] == n:
+            return int(i)
+    return None
+
+
+def localization_metrics(t_ns: np.ndarray, est: np.ndarray, true: np.ndarray, *,
+                         threshold_m: float = 0.5, hold_s: float = 1.0) -> dict:
+    """The report's localization section from per-frame estimates (NaN = none) and truth."""
+    t_s = (np.asarray(t_ns, dtype=np.int64) - int(t_ns[0])) * 1e-9 if len(t_ns) else np.zeros(0)
+    est = np.asarray(est, dtype=float)
+    true = np.asarray(true, dtype=float)
+    valid_truth = np.all(np.isfinite(true), axis=1)
+    est, true, t_s = est[valid_truth], true[valid_truth], t_s[valid_truth]
+    err = pose_errors(est, true)
+    pos = np.where(np.isfinite(err["position_m"]), err["position_m"], np.inf)
+    k = convergence_index(pos, t_s, threshold_m, hold_s) if len(pos) else None
+    out = {"frames": int(len(t_s)), "convergence_s": None if k is None else float(t_s[k]),
+           "availability_0_5m": 0.0}
+    after = slice(k if k is not None else len(t_s), None)
+    sel = np.isfinite(pos[after])
+    for name in ("lateral_m", "longitudinal_m", "x_m", "y_m", "yaw_deg"):
+        out[name] = _stats(err[name][after][sel])
+    n_after = len(pos[after])
+    if n_after:
+        out["availability_0_5m"] = float(np.mean(pos[after] < threshold_m))
+    out["frames_after_convergence"] = int(n_after)
+    return out
+
+
+def summary_line(m: dict) -> str:
+    """One line for logs: x/y/yaw mean and p90, availability, convergence."""
+    def f(key, unit_scale=1.0):
+        s = m[key]
+        return "n/a" if s["mean"] is None else f"{s['mean'] * unit_scale:.3f}/{s['p90'] * unit_scale:.3f}"
+    conv = m["convergence_s"]
+    return (f"x {f('x_m')} m, y {f('y_m')} m, yaw {f('yaw_deg')} deg (mean/p90), "
+            f"availability {m['availability_0_5m'] * 100:.2f} %, convergence "
+            f"{'never' if conv is None else f'{conv:.1f} s'}, frames {m['frames']}")
+
