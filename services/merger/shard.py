@@ -1,0 +1,257 @@
+"""The merger's pure core: grid patches in -> per-tile label maps and compressed tiles out.
+
+MergerShard applies each patch once (dedupe by patch id), keeps every tile's votes per traversal,
+and recomputes the labels of changed (dirty) tiles with the evidence rule below, vectorised with
+numpy. TileCodecCache keeps each tile's compressed form and a version that grows when it changes.
+No I/O, no clocks: the node decides when to flush (debounce) and what to persist.
+
+Evidence rule (DESIGN.md: Map updating), per cell:
+  1. Each traversal (drive) that observed the cell casts ONE ballot: the class with the most of its
+     votes in that cell (ties go to the higher class: paint over road). Patches of one traversal
+     are summed first, so a car that idles or passes twice still votes once.
+  2. Only the ballots of the WINDOW (5) most recent traversals that observed the cell count.
+     Traversals are ordered by their own time in the tile (the earliest t_first_ns of their patches
+     there), ties by traversal id: never by arrival.
+  3. The label is the class with the most ballots in the window; ties go to the class with more
+     votes in the window, then to the lower class. A label needs at least MIN_VOTES votes in the
+     window, else the cell is unknown (0).
+Consequences: after any number (50) of traversals of old paint, a repaint wins as soon as 3 of
+the last 5 traversals saw it (3 traversals); one noisy traversal is 1 ballot against >= 2 and
+never flips a cell that 2 or more traversals agree on; a map of one or two traversals is the
+paper's plain vote sum. Everything is integer arithmetic over the set of applied patches, so the
+map (and its digest) is independent of arrival order, crashes and replays. Memory grows with the
+stored traversals of a tile (compaction of traversals outside every cell's window is future work).
+"""
+
+import hashlib
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common.classes import NUM_CLASSES
+from common.contours import CODEC, encode_tile
+from common.errors import TileError
+from common.grid import CELLS_PER_TILE, TILE_CELLS
+from common.messages import ACCEPTED, DUPLICATE, GridPatch
+
+WINDOW_TRAVERSALS = 5
+MIN_VOTES = 2
+
+TileId = tuple[int, int]
+
+
+@dataclass
+class _Traversal:
+    """One traversal's votes in one tile: pieces as they arrive, consolidated lazily."""
+
+    t_first_ns: int
+    pieces: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+
+    def consolidated(self) -> tuple[np.ndarray, np.ndarray]:
+        """(cells uint32 sorted unique, votes uint32 [n, 6]) with empty rows removed."""
+        if len(self.pieces) > 1:
+            cells = np.concatenate([c for c, _ in self.pieces])
+            votes = np.concatenate([v for _, v in self.pieces])
+            order = np.argsort(cells, kind="stable")
+            cells, votes = cells[order], votes[order]
+            starts = np.flatnonzero(np.r_[True, cells[1:] != cells[:-1]])
+            self.pieces = [(cells[starts], np.add.reduceat(votes, starts, axis=0))]
+        return self.pieces[0]
+
+
+@dataclass
+class _TileState:
+    traversals: dict[str, _Traversal] = field(default_factory=dict)
+    labels: np.ndarray = field(default_factory=lambda: np.zeros((TILE_CELLS, TILE_CELLS), np.uint8))
+    dirty: bool = False
+
+
+class MergerShard:
+    """Exactly-once vote merging for the tiles this shard owns (see the module docstring)."""
+
+    def __init__(
+        self,
+        *,
+        owns: Callable[[TileId], bool] = lambda tile: True,
+        window_traversals: int = WINDOW_TRAVERSALS,
+        min_votes: int = MIN_VOTES,
+        max_batch_patches: int = 4096,
+    ):
+        self.owns = owns
+        self.window = int(window_traversals)
+        self.min_votes = int(min_votes)
+        self.max_batch_patches = int(max_batch_patches)
+        self.seen: set[str] = set()
+        self.tiles_state: dict[TileId, _TileState] = {}
+        self.counters = {"patches_applied": 0, "duplicates": 0, "cell_votes": 0}
+
+    # -- ingest ----------------------------------------------------------------------------------
+
+    def check_batch(self, patches: list[GridPatch]) -> list[GridPatch]:
+        """Validate a batch without touching state; return the patches that are new here (first
+        occurrence of each unseen id). Raises TileError for anything the shard must refuse."""
+        if len(patches) > self.max_batch_patches:
+            raise TileError(f"batch of {len(patches)} patches exceeds {self.max_batch_patches}")
+        new, ids = [], set()
+        for p in patches:
+            _check_patch(p)
+            if not self.owns(tuple(p.tile)):
+                raise TileError(f"tile {tuple(p.tile)} is not owned by this shard")
+            if p.patch_id not in self.seen and p.patch_id not in ids:
+                ids.add(p.patch_id)
+                new.append(p)
+        return new
+
+    def apply_batch(self, patches: list[GridPatch]) -> dict[str, str]:
+        """Check then apply a whole batch: patch id -> accepted | duplicate. All or nothing."""
+        new = {p.patch_id for p in self.check_batch(patches)}
+        results = {}
+        for p in patches:
+            if p.patch_id in new and p.patch_id not in self.seen:
+                self._add(p)
+                results[p.patch_id] = ACCEPTED
+            else:
+                self.counters["duplicates"] += 1
+                results.setdefault(p.patch_id, DUPLICATE)
+        return results
+
+    def apply_patch(self, patch: GridPatch) -> str:
+        return self.apply_batch([patch])[patch.patch_id]
+
+    def _add(self, p: GridPatch) -> None:
+        state = self.tiles_state.setdefault(tuple(p.tile), _TileState())
+        trav = state.traversals.get(p.traversal)
+        if trav is None:
+            trav = state.traversals[p.traversal] = _Traversal(t_first_ns=p.t_first_ns)
+        trav.t_first_ns = min(trav.t_first_ns, p.t_first_ns)
+        votes = np.asarray(p.votes, dtype=np.uint32)
+        keep = votes.any(axis=1)
+        trav.pieces.append((np.asarray(p.cells, dtype=np.uint32)[keep], votes[keep]))
+        state.dirty = True
+        self.seen.add(p.patch_id)
+        self.counters["patches_applied"] += 1
+        self.counters["cell_votes"] += int(len(p.cells))
+
+    # -- labels ----------------------------------------------------------------------------------
+
+    def dirty_tiles(self) -> list[TileId]:
+        return sorted(t for t, s in self.tiles_state.items() if s.dirty)
+
+    def flush(self, tiles: Iterable[TileId] | None = None) -> list[TileId]:
+        """Recompute the labels of dirty tiles (all, or those given); returns those recomputed."""
+        done = []
+        for t in self.dirty_tiles() if tiles is None else tiles:
+            state = self.tiles_state.get(t)
+            if state is None or not state.dirty:
+                continue
+            state.labels = tile_labels(
+                list(state.traversals.items()), window=self.window, min_votes=self.min_votes
+            )
+            state.dirty = False
+            done.append(t)
+        return done
+
+    def labels(self, tile: TileId) -> np.ndarray:
+        """The merged (512, 512) label raster of a tile as of the last flush."""
+        state = self.tiles_state.get(tuple(tile))
+        if state is None:
+            raise TileError(f"no data for tile {tuple(tile)}")
+        return state.labels
+
+    def tiles(self) -> list[TileId]:
+        return sorted(self.tiles_state)
+
+    def digest(self) -> str:
+        """sha256 over the tiles (sorted) and their label rasters, as of the last flush."""
+        h = hashlib.sha256()
+        for t in self.tiles():
+            h.update(np.asarray(t, dtype="<i8").tobytes())
+            h.update(self.tiles_state[t].labels.tobytes())
+        return h.hexdigest()
+
+    def stats(self) -> dict:
+        tiles = self.tiles()
+        return {
+            **self.counters,
+            "tiles": len(tiles),
+            "cells": int(sum(int(np.count_nonzero(self.tiles_state[t].labels)) for t in tiles)),
+            "tile_list": ";".join(f"{tx},{ty}" for tx, ty in tiles),
+            "digest": self.digest(),
+        }
+
+
+def _check_patch(p: GridPatch) -> None:
+    cells, votes = np.asarray(p.cells), np.asarray(p.votes)
+    if cells.ndim != 1 or votes.shape != (cells.shape[0], NUM_CLASSES):
+        raise TileError(f"patch {p.patch_id!r}: expected cells [n] and votes [n, {NUM_CLASSES}]")
+    if cells.size and (int(cells.min()) < 0 or int(cells.max()) >= CELLS_PER_TILE):
+        raise TileError(f"patch {p.patch_id!r}: cell index out of range [0, {CELLS_PER_TILE})")
+    if cells.size > 1 and not np.all(np.diff(cells.astype(np.int64)) > 0):
+        raise TileError(f"patch {p.patch_id!r}: cells must be sorted and unique")
+    if not np.issubdtype(votes.dtype, np.integer) or (votes.size and int(votes.min()) < 0):
+        raise TileError(f"patch {p.patch_id!r}: votes must be non-negative integers")
+
+
+def tile_labels(
+    traversals: list[tuple[str, _Traversal]], *, window: int, min_votes: int
+) -> np.ndarray:
+    """The evidence rule (module docstring) for one tile -> (512, 512) uint8 labels."""
+    labels = np.zeros(CELLS_PER_TILE, dtype=np.uint8)
+    # 1. rank traversals, most recent first (their own time, then id: arrival never matters)
+    order = sorted(traversals, key=lambda kv: (kv[1].t_first_ns, kv[0]), reverse=True)
+    parts = [t.consolidated() for _, t in order]
+    sizes = [len(c) for c, _ in parts]
+    if not sum(sizes):
+        return labels.reshape(TILE_CELLS, TILE_CELLS)
+    cells = np.concatenate([c for c, _ in parts]).astype(np.int64)
+    votes = np.concatenate([v for _, v in parts])
+    rank = np.repeat(np.arange(len(parts), dtype=np.int64), sizes)
+    # 2. group by cell, newest first, and keep each cell's `window` newest observations
+    idx = np.argsort(cells * len(parts) + rank, kind="stable")
+    cells, votes = cells[idx], votes[idx]
+    starts = np.flatnonzero(np.r_[True, cells[1:] != cells[:-1]])
+    gid = np.cumsum(np.r_[True, cells[1:] != cells[:-1]]) - 1
+    keep = (np.arange(len(cells)) - starts[gid]) < window
+    gid, votes = gid[keep], votes[keep]
+    # 3. one ballot per traversal (ties to the higher class), ballots then votes decide
+    ballot = (NUM_CLASSES - 1) - np.argmax(votes[:, ::-1], axis=1)
+    n = len(starts)
+    ballots = np.bincount(gid * NUM_CLASSES + ballot, minlength=n * NUM_CLASSES).reshape(n, -1)
+    vsum = np.zeros((n, NUM_CLASSES), dtype=np.int64)
+    _add_rows(vsum, gid, votes)
+    score = (ballots.astype(np.int64) << 40) | np.minimum(vsum, (1 << 40) - 1)
+    winner = np.argmax(score, axis=1)
+    winner[vsum[np.arange(n), winner] < min_votes] = 0
+    labels[cells[starts]] = winner.astype(np.uint8)
+    return labels.reshape(TILE_CELLS, TILE_CELLS)
+
+
+def _add_rows(out: np.ndarray, gid: np.ndarray, votes: np.ndarray) -> None:
+    """out[gid] += votes for sorted gid, by reduceat (much faster than np.add.at)."""
+    starts = np.flatnonzero(np.r_[True, gid[1:] != gid[:-1]])
+    out[gid[starts]] += np.add.reduceat(votes.astype(np.int64), starts, axis=0)
+
+
+class TileCodecCache:
+    """Compressed form and version of each tile; a version grows only when the bytes change."""
+
+    def __init__(self, encode: Callable[[np.ndarray], bytes] = encode_tile, codec: str = CODEC):
+        self.encode = encode
+        self.codec = codec
+        self.entries: dict[TileId, tuple[int, bytes]] = {}
+
+    def restore(self, tile: TileId, version: int, data: bytes) -> None:
+        self.entries[tuple(tile)] = (int(version), bytes(data))
+
+    def update(self, tile: TileId, labels: np.ndarray) -> bool:
+        """Re-encode a tile; True (and version + 1) when its compressed bytes changed."""
+        data = self.encode(labels)
+        version, old = self.entries.get(tuple(tile), (0, None))
+        if data == old:
+            return False
+        self.entries[tuple(tile)] = (version + 1, data)
+        return True
+
+    def get(self, tile: TileId) -> tuple[int, bytes] | None:
+        return self.entries.get(tuple(tile))
