@@ -111,3 +111,27 @@ def synthetic_drive(rng, *, duration_s=20.0, speed_mps=10.0, start=(12.0, 28.25,
         "gnss_sigma_m": np.full(len(gidx), gnss_sigma_m), "gnss_ok": np.ones(len(gidx), bool),
         "truth_t_ns": t_ns, "truth_pose": truth,
     }
+
+
+def render_labels(cache, ipm, pose) -> np.ndarray:
+    """Label image of a frame: every ROI pixel takes the map class at its ground point."""
+    from common.geometry import transform_points_2d
+
+    labels = np.zeros(ipm.width * ipm.height, dtype=np.uint8)
+    labels[ipm.pixel_index] = cache.class_at(transform_points_2d(np.asarray(pose), ipm.ground_xy_m))
+    return labels.reshape(ipm.height, ipm.width)
+
+
+def write_log(root, cache, streams, camera, vehicle="prod-0"):
+    """A label-only production drive log whose frames are rendered from the map."""
+    from common.camera import build_ipm_lookup
+    from common.drivelog import DriveLogMeta, DriveLogWriter
+
+    ipm = build_ipm_lookup(camera, x_min_m=3.0, length_m=12.0, width_m=8.0)
+    meta = DriveLogMeta(vehicle, f"{vehicle}-d0", "production",
+                        {"name": "straight", "origin_lat": 0.0, "origin_lon": 0.0}, camera)
+    w = DriveLogWriter(root, meta)
+    for i, pose in enumerate(streams["frame_pose_true"]):
+        w.write_frame(i, None, render_labels(cache, ipm, pose))
+    w.close(streams)
+    return root
