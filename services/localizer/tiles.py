@@ -101,10 +101,13 @@ class TileClient:
                 continue
             if tile not in self.cache:
                 continue
-            if self.params:  # raw map wanted: the update is contour coded, fetch raw instead
-                applied += self.fetch(tile)
-            else:
-                applied += self._store(sample.payload.to_bytes())
+            try:
+                if self.params:  # raw map wanted: the update is contour coded, fetch raw instead
+                    applied += self.fetch(tile)
+                else:
+                    applied += self._store(sample.payload.to_bytes())
+            except CodecError as exc:
+                logger.warning("tile update %s ignored: %s", tile, exc)
         self.updates += applied
         return applied
 

@@ -1,0 +1,93 @@
+"""Localizer core: ICP, degeneracy, EKF, coarse search, a whole synthetic drive."""
+
+import math
+
+import numpy as np
+import pytest
+
+from common.config import LocalizerConfig
+from services.localizer.ekf import PoseFilter
+from services.localizer.icp import Icp
+from services.localizer.init import CoarseSearch
+from services.localizer.localizer import get_localizer, replay
+from services.localizer.map_cache import TileCache, class_slots
+from services.localizer.metrics import localization_metrics
+from tests.localizer.synthetic import fill_cache, frame_points, straight_road, synthetic_drive
+
+
+@pytest.fixture(scope="module")
+def road_cache():
+    return fill_cache(TileCache(capacity=30), straight_road())
+
+
+@pytest.mark.parametrize("offset", [(0.5, -0.4, 0.03), (-0.8, 0.6, -0.04), (0.2, 0.2, 0.01)])
+def test_icp_recovers_known_offset(road_cache, rng, offset):
+    true = np.array([62.0, 28.25, 0.02])  # stop line, crosswalk and dashes in view
+    pts, cls = frame_points(road_cache, true, rng)
+    res = Icp().register(pts, class_slots(cls), true + offset, road_cache)
+    assert res is not None and not res.degenerate
+    assert np.hypot(*(res.pose[:2] - true[:2])) < 0.08
+    assert abs(res.pose[2] - true[2]) < math.radians(0.3)
+
+
+def test_icp_flags_parallel_lines_as_degenerate(rng):
+    cache = fill_cache(TileCache(), straight_road(features=False, dashed=False))
+    true = np.array([80.0, 28.25, 0.0])
+    pts, cls = frame_points(cache, true, rng)
+    res = Icp().register(pts, class_slots(cls), true + [0.4, 0.3, 0.0], cache)
+    assert res.degenerate
+    assert abs(res.weak_direction[0]) > 0.99  # along the road (+x)
+    assert abs(res.pose[1] - true[1]) < 0.05  # across the road it still locks on
+    assert res.cov[0, 0] > 1.0 and res.cov[1, 1] < 0.01  # inflated along, trusted across
+
+
+def test_ekf_converges_from_perturbed_start_and_wraps_angles(rng):
+    f = PoseFilter()
+    true = np.array([10.0, 5.0, math.pi - 0.01])  # heading near the +-pi seam
+    f.reset(true + [1.5, -1.0, 0.05], np.diag([4.0, 4.0, 0.1]))
+    for _ in range(50):
+        f.predict(10.0, 0.0, 0.1)
+        true = true + [10.0 * 0.1 * math.cos(true[2]), 10.0 * 0.1 * math.sin(true[2]), 0.0]
+        meas = true + rng.normal(0, [0.05, 0.05, 0.002])
+        meas[2] = math.remainder(meas[2] + 0.03, 2 * math.pi)  # crosses the seam
+        f.update_pose(meas - [0, 0, 0.03], np.diag([0.05**2, 0.05**2, 0.002**2]))
+    err = f.pose - true
+    assert np.hypot(err[0], err[1]) < 0.1
+    assert abs(math.remainder(err[2], 2 * math.pi)) < math.radians(0.5)
+    assert -math.pi <= f.pose[2] < math.pi
+    assert f.ok
+
+
+def test_ekf_gates_outliers_and_drops_integrity():
+    f = PoseFilter(max_rejections=5)
+    f.reset(np.zeros(3), np.diag([0.01, 0.01, 1e-4]))
+    assert not f.update_position(np.array([30.0, 0.0]), 1.0)  # 30 m off: rejected
+    for _ in range(5):
+        f.update_pose(np.array([10.0, 0.0, 0.0]), np.diag([1e-4, 1e-4, 1e-6]))
+    assert not f.ok and abs(f.pose[0]) < 1e-9
+
+
+def test_coarse_search_finds_pose_from_5m_off(road_cache, rng):
+    true = np.array([140.0, 28.25, 0.03])
+    pts, cls = frame_points(road_cache, true, rng)
+    gnss = true[:2] + [3.5, -3.5]  # ~5 m off, heading unknown
+    cands = CoarseSearch(seed=1).search(pts, cls, lambda _yaw: gnss, None, road_cache)
+    icp = Icp()
+    best = min((icp.register(pts, class_slots(cls), c.pose, road_cache) for c in cands[:3]),
+               key=lambda r: np.hypot(*(r.pose[:2] - true[:2])) if r is not None else 1e9)
+    assert np.hypot(*(best.pose[:2] - true[:2])) < 0.2
+    assert abs(best.pose[2] - true[2]) < math.radians(1.0)
+    assert np.hypot(*(cands[0].pose[:2] - true[:2])) < 1.0  # the best coarse candidate is right
+
+
+def test_whole_drive_converges_and_stays_available(road_cache, rng):
+    streams = synthetic_drive(rng, duration_s=12.0, gnss_bias_m=(3.0, -3.5))
+    loc = get_localizer(LocalizerConfig(), road_cache)
+    frames = [frame_points(road_cache, p, rng) for p in streams["frame_pose_true"]]
+    est = replay(loc, streams, lambda i: frames[i])
+    m = localization_metrics(streams["frame_t_ns"], np.array([e.pose for e in est]),
+                             streams["frame_pose_true"])
+    assert m["convergence_s"] is not None and m["convergence_s"] < 5.0
+    assert m["availability_0_5m"] == 1.0
+    assert m["y_m"]["p90"] < 0.05 and m["x_m"]["p90"] < 0.1 and m["yaw_deg"]["p90"] < 0.2
+    assert all(e.ok for e in est[-50:])
