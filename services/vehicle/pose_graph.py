@@ -75,17 +75,16 @@ class PoseGraph:
         """Ask the next optimize() to iterate a few extra times (e.g. GNSS back after an outage)."""
         self._large_correction = True
 
-    def optimize(self) -> None:
-        """One ISAM2 update with only the factors and values added since the last call."""
-        if self._new_factors.size() == 0 and self._new_values.size() == 0:
-            return
+    def optimize(self, iterations: int = 1) -> None:
+        """ISAM2 update with only the factors and values added since the last call, then
+        `iterations - 1` more relinearizing steps (more after a marked large correction)."""
         self._isam.update(self._new_factors, self._new_values)
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
-        if self._large_correction:
-            for _ in range(EXTRA_ITERATIONS_AFTER_GAP):
-                self._isam.update()
-            self._large_correction = False
+        extra = iterations - 1 + (EXTRA_ITERATIONS_AFTER_GAP if self._large_correction else 0)
+        for _ in range(extra):
+            self._isam.update()
+        self._large_correction = False
 
     def estimate(self, key: int) -> np.ndarray:
         """Current optimized (x, y, yaw) of one node (call optimize() first)."""

@@ -95,7 +95,7 @@ def drive(rng, *, length_m=1200.0, speed_mps=10.0, frame_hz=20.0, outage_m=(500.
     }
 
 
-def test_camera() -> CameraModel:
+def mapping_camera() -> CameraModel:
     return camera_from_config(CameraConfig())
 
 
@@ -132,7 +132,7 @@ def write_drive_log(root, rng, *, vehicle="map-0", traversal="t0", frame_stride=
     length_m = drive_kw.get("length_m", 1200.0)
     world = road_world(centreline(length_m))
     streams = drive(rng, **drive_kw)
-    camera = test_camera()
+    camera = mapping_camera()
     meta = DriveLogMeta(vehicle=vehicle, traversal=traversal, profile="mapping",
                         world={"name": world.name, "origin_lat": 0.0, "origin_lon": 0.0},
                         camera=camera, notes={"source": "tests/vehicle/synthetic.py"})
