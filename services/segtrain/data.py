@@ -1,0 +1,115 @@
+"""Training frames for the segmentation model, from seeded procedural towns only.
+
+Two renderers: the simulator's (drive logs of simulated vehicles, when services.sim.simulate is
+available) and services.segtrain.synth (random poses, jittered cameras, randomized materials).
+Every kept frame is resized to the model's input size exactly as the runtime does (INTER_AREA)
+and its true labels area-resized per class (argmax of the class coverage), so thin paint is
+neither lost nor fattened."""
+
+import logging
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from common.classes import NUM_CLASSES
+from common.drivelog import DriveLog
+
+logger = logging.getLogger(__name__)
+
+FRAME_STRIDE = 4  # consecutive frames are nearly identical
+TOWN_KM = 1.0
+
+
+def resize_image(rgb: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+
+
+def resize_labels(labels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Class image -> (H, W) of `size` by per-class area coverage + argmax."""
+    cover = np.stack([cv2.resize((labels == c).astype(np.float32), size,
+                                 interpolation=cv2.INTER_AREA) for c in range(NUM_CLASSES)])
+    return cover.argmax(axis=0).astype(np.uint8)
+
+
+def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
+                 max_frames: int = 6000, cache_dir: Path | None = None):
+    """(frames (N, H, W, 3) uint8, labels (N, H, W) uint8) from procedural towns; cached by seed."""
+    cache_dir = cache_dir or Path(tempfile.gettempdir()) / "roadmap-segtrain"
+    cache = cache_dir / f"towns-s{seed}-{input_size[0]}x{input_size[1]}-{int(budget_s)}s.npz"
+    if cache.is_file():
+        logger.info("training frames from cache %s", cache)
+        with np.load(cache) as z:
+            return z["frames"], z["labels"]
+    sim = _sim_available()
+    share = 0.5 if sim else 0.0
+    frames, labels = _synth_towns(seed, input_size, budget_s * (1 - share),
+                                  int(max_frames * (1 - share)))
+    if sim:
+        f2, l2 = _render_towns(seed, input_size, budget_s * share, max_frames - len(frames))
+        frames, labels = np.concatenate([frames, f2]), np.concatenate([labels, l2])
+    order = np.random.default_rng(seed).permutation(len(frames))
+    frames, labels = frames[order], labels[order]
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(cache, frames=frames, labels=labels)
+    return frames, labels
+
+
+def _sim_available() -> bool:
+    try:
+        import services.sim.simulate  # noqa: F401
+    except ImportError:
+        logger.warning("simulator renderer not available: training on synth frames only")
+        return False
+    return True
+
+
+def _synth_towns(seed, input_size, budget_s, max_frames):
+    from services.segtrain.synth import render_town_frames
+    from services.sim.worlds import load_world
+
+    rng = np.random.default_rng(seed)
+    t0 = time.perf_counter()
+    frames, labels = [], []
+    k = 0
+    while time.perf_counter() - t0 < budget_s and len(frames) < max_frames:
+        world = load_world(f"town:{rng.uniform(0.6, 1.5):.2f}", 10_000 * (seed + 1) + k)
+        # supersample 1: the 2x area resize to the model's input size anti-aliases
+        for rgb, lab in render_town_frames(world, 5, 8, rng, supersample=1):
+            frames.append(resize_image(rgb, input_size))
+            labels.append(resize_labels(lab, input_size))
+        logger.info("synth town %d: %d frames, %.0f s", k, len(frames), time.perf_counter() - t0)
+        k += 1
+    return np.stack(frames[:max_frames]), np.stack(labels[:max_frames])
+
+
+def _render_towns(seed, input_size, budget_s, max_frames):
+    from services.sim.simulate import simulate_drives
+    from services.sim.worlds import load_world
+
+    t0 = time.perf_counter()
+    frames, labels = [], []
+    k = 0
+    with tempfile.TemporaryDirectory(prefix="segtrain-") as tmp:
+        while time.perf_counter() - t0 < budget_s and len(frames) < max_frames:
+            town_seed = 1000 * seed + k
+            world = load_world(f"town:{TOWN_KM:g}", town_seed)
+            out = Path(tmp) / f"t{k}"
+            logs = simulate_drives(world, out, vehicles=2, drives=1, profile="mapping",
+                                   seed=town_seed, images=True, max_km=0.5)
+            for path in logs:
+                log = DriveLog(path)
+                for i in range(int(k % FRAME_STRIDE), len(log), FRAME_STRIDE):
+                    rgb, lab = log.image(i), log.labels(i)
+                    if rgb is None or lab is None:
+                        continue
+                    frames.append(resize_image(rgb, input_size))
+                    labels.append(resize_labels(lab, input_size))
+            shutil.rmtree(out, ignore_errors=True)
+            logger.info("town %d (seed %d): %d frames so far, %.0f s", k, town_seed, len(frames),
+                        time.perf_counter() - t0)
+            k += 1
+    return np.stack(frames[:max_frames]), np.stack(labels[:max_frames])

@@ -1,0 +1,187 @@
+"""A small randomized ground-plane renderer for training data: World + camera + pose -> (RGB, labels).
+
+Every pixel's ray is intersected with the ground (paper eq. 1, `CameraModel.ground_points`), the
+world's label raster is sampled there (2x2 supersampling, per-class coverage -> labels), and the
+colour comes from randomized materials: asphalt with world-anchored texture and patches, worn paint
+(white or yellow), verges, sky, soft shadows, vignetting. It complements the simulator's renderer
+with more appearance variety (domain randomization) and stands in for it when it is absent."""
+
+import math
+
+import cv2
+import numpy as np
+
+from common.camera import CameraModel
+from common.classes import NUM_CLASSES, Cls
+from common.geometry import rot_z
+
+CELL_M = 0.05
+SUPER = 2
+
+
+TEXTURE = 1024  # world-anchored textures tile every 51.2 m
+
+
+class WorldRaster:
+    """The world's label raster at CELL_M plus tiled world-anchored noise textures."""
+
+    def __init__(self, world, rng):
+        self.labels, self.x0, self.y0 = world.rasterize_all(4.0, CELL_M)
+        self.fine = _noise((TEXTURE, TEXTURE), rng, scale=1)  # grain
+        self.coarse = _noise((TEXTURE, TEXTURE), rng, scale=64)  # patches, repairs, shadows
+        self.wear = _noise((TEXTURE, TEXTURE), rng, scale=6)
+
+    def sample(self, xy_world):
+        """World points (N, 2) -> (labels, fine, coarse, wear) at the nearest cell; 0 outside."""
+        c = np.floor((xy_world[:, 0] - self.x0) / CELL_M).astype(np.int64)
+        r = np.floor((xy_world[:, 1] - self.y0) / CELL_M).astype(np.int64)
+        h, w = self.labels.shape
+        ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        lab = np.where(ok, self.labels[np.where(ok, r, 0), np.where(ok, c, 0)], 0)
+        tr, tc = r % TEXTURE, c % TEXTURE
+        return lab, self.fine[tr, tc], self.coarse[tr, tc], self.wear[tr, tc]
+
+
+def _noise(shape, rng, scale):
+    """Smooth noise in [-1, 1] of feature size ~scale cells (bilinear upsampled random grid)."""
+    h, w = shape
+    g = rng.standard_normal((max(h // scale, 2) + 1, max(w // scale, 2) + 1)).astype(np.float32)
+    n = cv2.resize(g, (w, h), interpolation=cv2.INTER_LINEAR if scale > 1 else cv2.INTER_NEAREST)
+    return np.clip(n / 2.0, -1.0, 1.0).astype(np.float32)
+
+
+def random_camera(rng, width=640, height=360) -> CameraModel:
+    """The default front camera with height, pitch, roll, yaw and focal-length jitter."""
+    f = 460.0 * rng.uniform(0.85, 1.15)
+    return CameraModel.from_mount(
+        width=width, height=height, fx=f, fy=f, cx=width / 2 + rng.normal(0, 6),
+        cy=height / 2 + rng.normal(0, 6), dist=[rng.uniform(-0.08, 0.0), 0.01, 0, 0, 0],
+        x_m=1.8, y_m=0.0, height_m=rng.uniform(1.25, 1.75), pitch_deg=rng.uniform(1.5, 7.0),
+        roll_deg=rng.normal(0, 0.8), yaw_deg=rng.normal(0, 1.0))
+
+
+def random_pose(world, rng, rare_prob: float = 0.5):
+    """(x, y, yaw) on a route, jittered sideways and in heading; with `rare_prob` a pose that
+    looks at a stop line, crosswalk or ground sign 4-20 m ahead (those classes are rare)."""
+    rare = [m for m in world.markings if m.cls in (Cls.STOP_LINE, Cls.CROSSWALK, Cls.GROUND_SIGN)]
+    if rare and rng.random() < rare_prob:
+        target = rare[int(rng.integers(len(rare)))].polygon_xy_m.mean(axis=0)
+        for route in world.routes:
+            d = target - route
+            dist = np.hypot(d[:, 0], d[:, 1])
+            heading = np.gradient(route, axis=0)
+            facing = (d * heading).sum(1) > 0.8 * dist * np.hypot(heading[:, 0], heading[:, 1])
+            ok = np.flatnonzero((dist > 4.0) & (dist < 20.0) & facing)
+            if len(ok):
+                return _pose_on(route, int(rng.choice(ok)), rng)
+    route = world.routes[int(rng.integers(len(world.routes)))]
+    return _pose_on(route, int(rng.integers(0, len(route) - 2)), rng)
+
+
+def _pose_on(route, i, rng):
+    i = min(i, len(route) - 2)
+    d = route[i + 1] - route[i]
+    yaw = math.atan2(d[1], d[0]) + rng.normal(0, 0.05)
+    normal = np.array([-math.sin(yaw), math.cos(yaw)])
+    xy = route[i] + normal * rng.normal(0, 0.4)
+    return float(xy[0]), float(xy[1]), yaw
+
+
+class GroundMap:
+    """Per camera, once: every supersampled pixel's ground point in the vehicle frame."""
+
+    def __init__(self, camera: CameraModel, supersample: int = SUPER):
+        self.camera, self.ss = camera, supersample
+        w, h, k = camera.width, camera.height, supersample
+        v, u = np.mgrid[0:h * k, 0:w * k]
+        self.uv = np.stack([(u.ravel() + 0.5) / k, (v.ravel() + 0.5) / k], axis=1)
+        ground_v = camera.ground_points(self.uv)
+        hit = np.isfinite(ground_v).all(axis=1)
+        self.dist = np.where(hit, np.hypot(ground_v[:, 0], ground_v[:, 1]), np.inf)
+        self.hit = hit & (self.dist < 120.0)
+        self.ground_v = np.where(self.hit[:, None], ground_v, 0.0)
+
+
+def render(raster: WorldRaster, ground: GroundMap, pose, rng):
+    """-> (rgb (H, W, 3) uint8, labels (H, W) uint8) of the camera at vehicle pose (x, y, yaw)."""
+    w, h = ground.camera.width, ground.camera.height
+    R = rot_z(pose[2])[:2, :2]
+    xy = ground.ground_v @ R.T + [pose[0], pose[1]]
+    lab, fine, coarse, wear = raster.sample(xy)
+    lab = np.where(ground.hit, lab, 0)
+    style = _style(rng)
+    rgb = _shade(lab, fine, coarse, wear, ground, h, style, rng)
+    k = ground.ss
+    rgb = rgb.reshape(h * k, w * k, 3)
+    labels = lab.reshape(h * k, w * k).astype(np.uint8)
+    if k > 1:
+        rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
+        labels = _downsample_labels(labels, (w, h))
+    return _camera_effects(rgb, style, rng), labels
+
+
+def _downsample_labels(lab, size):
+    cover = np.stack([cv2.resize((lab == c).astype(np.float32), size, interpolation=cv2.INTER_AREA)
+                      for c in range(NUM_CLASSES)])
+    return cover.argmax(0).astype(np.uint8)
+
+
+def _style(rng) -> dict:
+    asphalt = rng.uniform(45, 140)
+    return {
+        "asphalt": np.array([asphalt, asphalt, asphalt]) * rng.uniform(0.92, 1.08, 3),
+        "verge": rng.choice([[70, 110, 50], [120, 115, 105], [150, 140, 120], [90, 80, 65]])
+        * rng.uniform(0.7, 1.2, 3),
+        "sky": np.array([rng.uniform(150, 230), rng.uniform(170, 235), rng.uniform(190, 255)]),
+        "paint": rng.uniform(170, 250),
+        "yellow": rng.random() < 0.25,
+        "wear": rng.uniform(0.0, 0.45),
+        "shadow": rng.uniform(0.0, 0.6),
+        "light": rng.uniform(0.55, 1.35),
+        "fog_m": rng.uniform(60, 400),
+    }
+
+
+def _shade(lab, fine, coarse, wear, ground, h, s, rng):
+    hit, dist, uv = ground.hit, ground.dist, ground.uv
+    n = len(lab)
+    rgb = np.empty((n, 3), np.float32)
+    base = s["asphalt"] * (1.0 + 0.10 * fine[:, None] + 0.12 * coarse[:, None])
+    road = lab == Cls.ROAD
+    rgb[:] = s["verge"] * (1.0 + 0.25 * fine[:, None] + 0.2 * coarse[:, None])
+    rgb[road] = base[road]
+    paint = lab >= Cls.LANE_LINE
+    colour = np.array([s["paint"], s["paint"], s["paint"]])
+    tint = np.array([s["paint"], s["paint"] * 0.8, 60.0]) if s["yellow"] else colour
+    pc = np.where((lab == Cls.LANE_LINE)[:, None], tint, colour)
+    worn = np.clip(1.0 - s["wear"] * (1.0 + wear), 0.25, 1.0)[:, None]
+    rgb[paint] = (worn * pc + (1 - worn) * base)[paint]
+    shadow = 1.0 - s["shadow"] * np.clip(coarse * 3.0 - 0.6, 0.0, 1.0)
+    rgb *= (shadow * s["light"])[:, None]
+    fog = np.exp(-np.where(hit, dist, 0.0) / s["fog_m"])[:, None]
+    rgb = fog * rgb + (1 - fog) * s["sky"] * 0.9
+    sky = ~hit
+    t = np.clip(uv[sky, 1] / h, 0.0, 1.0)[:, None]
+    rgb[sky] = s["sky"] * (0.8 + 0.2 * t) + rng.normal(0, 3, (int(sky.sum()), 3))
+    return np.clip(rgb, 0, 255).astype(np.uint8)
+
+
+def _camera_effects(rgb, s, rng):
+    img = rgb.astype(np.float32)
+    if rng.random() < 0.5:
+        img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.4, 1.0))
+    h, w = img.shape[:2]
+    yy, xx = np.mgrid[0:h, 0:w]
+    r2 = ((xx - w / 2) / w) ** 2 + ((yy - h / 2) / h) ** 2
+    img *= (1.0 - rng.uniform(0, 0.5) * r2)[..., None]
+    img += rng.normal(0, rng.uniform(1, 6), img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def render_town_frames(world, n_cameras: int, poses_per_camera: int, rng, supersample=SUPER):
+    """Yield (rgb, labels) of random poses in a world, a few poses per jittered camera."""
+    raster = WorldRaster(world, rng)
+    for _ in range(n_cameras):
+        ground = GroundMap(random_camera(rng), supersample)
+        for _ in range(poses_per_camera):
+            yield render(raster, ground, random_pose(world, rng), rng)

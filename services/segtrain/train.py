@@ -1,0 +1,213 @@
+"""`roadmap train-seg`: render training frames from procedural towns, train RoadSegNet, export ONNX.
+
+Reproducible from (seed, minutes): frames come only from seeded procedural towns (never the
+Karlsruhe or Argoverse 2 benchmark worlds), with the renderer's randomization plus camera
+height/pitch/intrinsics jitter here and colour/blur/noise augmentation in the training loop.
+Training is time-boxed on 2 CPU threads; the model is exported at a fixed input size (opset 17),
+checked against torch with onnxruntime and written with its card to --out. torch is imported
+lazily (optional extra `.[train]`)."""
+
+import json
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from common.classes import NAMES, NUM_CLASSES, Cls
+from common.segmentation import META_KEY
+from services.segtrain import data as seg_data
+
+logger = logging.getLogger(__name__)
+
+INPUT_SIZE = (320, 176)  # (W, H) of the model input
+CROP_HW = (128, 224)  # training crops (H, W) from the model-size frames
+BATCH = 12
+LR_MAX = 6e-3
+THREADS = 2
+
+
+def train_command(args, cfg) -> int:
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    minutes = float(args.minutes)
+    render_budget_s = min(0.2 * minutes * 60.0, 10 * 60.0)
+    frames, labels = seg_data.training_set(seed=args.seed, input_size=INPUT_SIZE,
+                                           budget_s=render_budget_s)
+    render_s = time.perf_counter() - t_start
+    train_s = max(minutes * 60.0 - render_s - 60.0, 60.0)
+    result = train_and_export(frames, labels, out, seed=args.seed, train_s=train_s)
+    result["render_s"] = round(render_s, 1)
+    result["total_s"] = round(time.perf_counter() - t_start, 1)
+    (out / "train_log.json").write_text(json.dumps(result, indent=2))
+    logger.info("trained in %.1f min: %s", result["total_s"] / 60.0, result)
+    return 0
+
+
+def class_weights(labels: np.ndarray) -> np.ndarray:
+    """Median-frequency balancing, softened by a square root and clipped to [1, 10]."""
+    counts = np.bincount(labels.reshape(-1), minlength=NUM_CLASSES).astype(float) + 1.0
+    freq = counts / counts.sum()
+    w = np.sqrt(np.median(freq) / freq)
+    return np.clip(w / w[Cls.ROAD], 1.0, 10.0)
+
+
+def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float) -> dict:
+    import torch
+
+    from services.segtrain.net import RoadSegNet, count_parameters
+
+    torch.manual_seed(seed)
+    torch.set_num_threads(THREADS)
+    rng = np.random.default_rng(seed)
+    n_val = max(len(frames) // 20, 4)
+    x_all = torch.from_numpy(frames).permute(0, 3, 1, 2).contiguous()  # uint8 NCHW
+    y_all = torch.from_numpy(labels.astype(np.int64))
+    weights = class_weights(labels[n_val:])
+    model = RoadSegNet()
+    opt = torch.optim.AdamW(model.parameters(), lr=LR_MAX, weight_decay=1e-4)
+    loss_fn = torch.nn.CrossEntropyLoss(weight=torch.tensor(weights, dtype=torch.float32))
+    logger.info("training %d params on %d frames (%d held for validation), weights %s",
+                count_parameters(model), len(frames) - n_val, n_val, np.round(weights, 2))
+    t0, step, losses = time.perf_counter(), 0, []
+    while (elapsed := time.perf_counter() - t0) < train_s:
+        frac = elapsed / train_s
+        for g in opt.param_groups:
+            g["lr"] = _lr(frac)
+        idx = rng.integers(n_val, len(frames), BATCH)
+        xb, yb = _crop_batch(x_all[idx], y_all[idx], rng)
+        xb, yb = augment(xb, yb, rng)
+        loss = loss_fn(model(xb), yb)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+        step += 1
+        if step % 100 == 0:
+            logger.info("step %d  %.0f s  lr %.4f  loss %.4f", step, elapsed, _lr(frac),
+                        float(np.mean(losses[-100:])))
+    model.eval()
+    val_iou = _validate(model, x_all[:n_val], y_all[:n_val])
+    logger.info("validation IoU (procedural towns, held out): %s", val_iou)
+    model_path = out / "roadseg.onnx"
+    export_onnx(model, model_path, seed=seed)
+    max_diff, agree = verify_onnx(model, model_path, x_all[:4])
+    return {
+        "steps": step, "train_s": round(time.perf_counter() - t0, 1), "frames": len(frames),
+        "params": count_parameters(model), "class_weights": np.round(weights, 3).tolist(),
+        "final_loss": float(np.mean(losses[-100:])) if losses else None,
+        "val_iou_town": val_iou, "onnx_max_abs_diff": max_diff, "onnx_argmax_agreement": agree,
+        "model_bytes": model_path.stat().st_size, "seed": seed,
+    }
+
+
+def _lr(frac: float) -> float:
+    """Linear warm-up over the first 3 %, then cosine decay to 2 % of the peak."""
+    if frac < 0.03:
+        return LR_MAX * (0.1 + 0.9 * frac / 0.03)
+    p = (frac - 0.03) / 0.97
+    return LR_MAX * (0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * min(p, 1.0))))
+
+
+def _crop_batch(x, y, rng):
+    """Random crops (H, W) = CROP_HW; same window for the whole batch (cheap, still varied)."""
+    h, w = CROP_HW
+    top = int(rng.integers(0, x.shape[2] - h + 1))
+    left = int(rng.integers(0, x.shape[3] - w + 1))
+    return x[:, :, top:top + h, left:left + w], y[:, top:top + h, left:left + w]
+
+
+def augment(x_u8, y, rng):
+    """Photometric augmentation on a uint8 batch -> float [0, 1]: brightness, contrast, colour
+    cast, gamma, blur, noise; plus horizontal flips (paint classes are mirror-invariant)."""
+    import torch
+    from torch.nn import functional as F
+
+    n = x_u8.shape[0]
+    x = x_u8.float() / 255.0
+    gain = torch.from_numpy(rng.uniform(0.55, 1.45, (n, 1, 1, 1)).astype(np.float32))
+    cast = torch.from_numpy(rng.uniform(0.85, 1.15, (n, 3, 1, 1)).astype(np.float32))
+    mean = x.mean(dim=(1, 2, 3), keepdim=True)
+    contrast = torch.from_numpy(rng.uniform(0.6, 1.3, (n, 1, 1, 1)).astype(np.float32))
+    x = ((x - mean) * contrast + mean) * gain * cast
+    gamma = torch.from_numpy(rng.uniform(0.7, 1.4, (n, 1, 1, 1)).astype(np.float32))
+    x = x.clamp(1e-4, 1.0) ** gamma
+    if rng.random() < 0.4:
+        sigma = float(rng.uniform(0.4, 1.2))
+        k = torch.from_numpy(_gauss_kernel(sigma)).expand(3, 1, 5, 5).contiguous()
+        x = F.conv2d(F.pad(x, (2, 2, 2, 2), mode="replicate"), k, groups=3)
+    noise = torch.from_numpy(rng.uniform(0.0, 0.05, (n, 1, 1, 1)).astype(np.float32))
+    x = x + torch.randn_like(x) * noise
+    flip = torch.from_numpy(rng.random(n) < 0.5)
+    x[flip] = x[flip].flip(-1)
+    y = y.clone()
+    y[flip] = y[flip].flip(-1)
+    return x.clamp(0.0, 1.0), y
+
+
+def _gauss_kernel(sigma: float) -> np.ndarray:
+    r = np.arange(-2, 3, dtype=np.float32)
+    g = np.exp(-0.5 * (r / sigma) ** 2)
+    k = np.outer(g, g)
+    return (k / k.sum()).astype(np.float32)[None, None]
+
+
+def _validate(model, x_u8, y) -> dict:
+    import torch
+
+    with torch.no_grad():
+        pred = model(x_u8.float() / 255.0).argmax(1).numpy()
+    y = y.numpy()
+    out = {}
+    for c in Cls:
+        if c == Cls.NONE:
+            continue
+        p, t = pred == c, y == c
+        union = int((p | t).sum())
+        out[NAMES[c]] = round(float((p & t).sum() / union), 4) if union else None
+    return out
+
+
+def export_onnx(model, path: Path, *, seed: int) -> None:
+    """Fixed input (1, 3, H, W) float RGB / 255; output `logits` (1, 6, H, W); self-describing
+    metadata under `roadmap.segmentation` (read by OnnxSegmenter)."""
+    import onnx
+    import torch
+
+    w, h = INPUT_SIZE
+    dummy = torch.rand(1, 3, h, w)
+    torch.onnx.export(model, (dummy,), str(path), input_names=["image"],
+                      output_names=["logits"], opset_version=17, dynamo=False,
+                      do_constant_folding=True)
+    proto = onnx.load(str(path))
+    meta = {"name": "roadseg", "input_size": [w, h], "scale": 1.0 / 255.0,
+            "mean": [0.0, 0.0, 0.0], "std": [1.0, 1.0, 1.0],
+            "classes": [NAMES[c] for c in Cls], "seed": seed}
+    entry = proto.metadata_props.add()
+    entry.key, entry.value = META_KEY, json.dumps(meta)
+    proto.producer_name = "roadmap train-seg"
+    onnx.checker.check_model(proto)
+    onnx.save(proto, str(path))
+
+
+def verify_onnx(model, path: Path, x_u8) -> tuple[float, float]:
+    """(max |onnxruntime - torch| over logits, argmax agreement) on full frames."""
+    import onnxruntime as ort
+    import torch
+
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    diffs, agree = [], []
+    for i in range(len(x_u8)):
+        x = x_u8[i:i + 1].float() / 255.0
+        with torch.no_grad():
+            ref = model(x).numpy()
+        got = sess.run(None, {"image": x.numpy()})[0]
+        diffs.append(float(np.abs(ref - got).max()))
+        agree.append(float((ref.argmax(1) == got.argmax(1)).mean()))
+    max_diff, agreement = max(diffs), float(np.mean(agree))
+    if max_diff > 1e-2 or agreement < 0.999:
+        raise RuntimeError(f"ONNX export differs from torch: max diff {max_diff}, "
+                           f"argmax agreement {agreement}")
+    return max_diff, agreement
