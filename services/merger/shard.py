@@ -12,9 +12,9 @@ Evidence rule (DESIGN.md: Map updating), per cell:
   2. Only the ballots of the WINDOW (5) most recent traversals that observed the cell count.
      Traversals are ordered by their own time in the tile (the earliest t_first_ns of their patches
      there), ties by traversal id: never by arrival.
-  3. The label is the class with the most ballots in the window; ties go to the class with more
-     votes in the window, then to the lower class. A label needs at least MIN_VOTES votes in the
-     window, else the cell is unknown (0).
+  3. The label is the class with the most ballots in the window; ties go to the class whose
+     ballots carry more votes, then to the lower class. A label needs its ballots to carry at
+     least MIN_VOTES votes, else the cell is unknown (0).
 Consequences: after any number (50) of traversals of old paint, a repaint wins as soon as 3 of
 the last 5 traversals saw it (3 traversals); one noisy traversal is 1 ballot against >= 2 and
 never flips a cell that 2 or more traversals agree on; a map of one or two traversals is the
@@ -37,26 +37,48 @@ from common.messages import ACCEPTED, DUPLICATE, GridPatch
 
 WINDOW_TRAVERSALS = 5
 MIN_VOTES = 2
+VOTE_CAP = 1 << 28  # per traversal and cell: window sums stay far below 2^32
 
 TileId = tuple[int, int]
 
 
 @dataclass
 class _Traversal:
-    """One traversal's votes in one tile: pieces as they arrive, consolidated lazily."""
+    """One traversal's votes in one tile: pieces as they arrive, reduced lazily to ballots."""
 
     t_first_ns: int
     pieces: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    _ballots: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
-    def consolidated(self) -> tuple[np.ndarray, np.ndarray]:
-        """(cells uint32 sorted unique, votes uint32 [n, 6]) with empty rows removed."""
+    def add(self, cells: np.ndarray, votes: np.ndarray, t_first_ns: int) -> None:
+        self.pieces.append((cells, votes))
+        self.t_first_ns = min(self.t_first_ns, t_first_ns)
+        self._ballots = None
+
+    def ballots(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(cells, ballot class, votes behind the ballot) per observed cell, cells unique."""
+        if self._ballots is None:
+            cells, votes = self._summed()
+            # ties go to the higher class (paint over road): argmax over the reversed classes
+            ballot = (NUM_CLASSES - 1) - np.argmax(votes[:, ::-1], axis=1)
+            weight = np.minimum(votes[np.arange(len(cells)), ballot].astype(np.uint32), VOTE_CAP)
+            seen = weight > 0  # an all-zero row is no observation
+            self._ballots = (cells[seen], ballot[seen], weight[seen])
+        return self._ballots
+
+    def _summed(self) -> tuple[np.ndarray, np.ndarray]:
+        """Sum the pieces per cell: stable sort (pieces are sorted runs), then group sums as
+        differences of a running sum."""
         if len(self.pieces) > 1:
             cells = np.concatenate([c for c, _ in self.pieces])
-            votes = np.concatenate([v for _, v in self.pieces])
             order = np.argsort(cells, kind="stable")
-            cells, votes = cells[order], votes[order]
-            starts = np.flatnonzero(np.r_[True, cells[1:] != cells[:-1]])
-            self.pieces = [(cells[starts], np.add.reduceat(votes, starts, axis=0))]
+            cells = cells[order]
+            votes = np.concatenate([v for _, v in self.pieces])[order].astype(np.uint64)
+            ends = np.flatnonzero(np.r_[cells[1:] != cells[:-1], True])
+            running = np.cumsum(votes, axis=0)
+            sums = running[ends]
+            sums[1:] -= running[ends[:-1]]
+            self.pieces = [(cells[ends], np.minimum(sums, VOTE_CAP).astype(np.uint32))]
         return self.pieces[0]
 
 
@@ -124,10 +146,7 @@ class MergerShard:
         trav = state.traversals.get(p.traversal)
         if trav is None:
             trav = state.traversals[p.traversal] = _Traversal(t_first_ns=p.t_first_ns)
-        trav.t_first_ns = min(trav.t_first_ns, p.t_first_ns)
-        votes = np.asarray(p.votes, dtype=np.uint32)
-        keep = votes.any(axis=1)
-        trav.pieces.append((np.asarray(p.cells, dtype=np.uint32)[keep], votes[keep]))
+        trav.add(np.asarray(p.cells, dtype=np.uint32), np.asarray(p.votes), p.t_first_ns)
         state.dirty = True
         self.seen.add(p.patch_id)
         self.counters["patches_applied"] += 1
@@ -196,41 +215,32 @@ def _check_patch(p: GridPatch) -> None:
 def tile_labels(
     traversals: list[tuple[str, _Traversal]], *, window: int, min_votes: int
 ) -> np.ndarray:
-    """The evidence rule (module docstring) for one tile -> (512, 512) uint8 labels."""
-    labels = np.zeros(CELLS_PER_TILE, dtype=np.uint8)
-    # 1. rank traversals, most recent first (their own time, then id: arrival never matters)
+    """The evidence rule (module docstring) for one tile -> (512, 512) uint8 labels.
+
+    Dense per-tile accumulators; traversals are visited newest first and each cell stops taking
+    observations once it has `window` of them, so no per-cell sort is needed."""
+    ballots = np.zeros(CELLS_PER_TILE * NUM_CLASSES, dtype=np.uint16)
+    vsum = np.zeros(CELLS_PER_TILE * NUM_CLASSES, dtype=np.uint32)
+    seen = np.zeros(CELLS_PER_TILE, dtype=np.uint16)  # observations taken per cell
+    # 1. most recent first, by the traversals' own time then id (arrival order never matters)
     order = sorted(traversals, key=lambda kv: (kv[1].t_first_ns, kv[0]), reverse=True)
-    parts = [t.consolidated() for _, t in order]
-    sizes = [len(c) for c, _ in parts]
-    if not sum(sizes):
-        return labels.reshape(TILE_CELLS, TILE_CELLS)
-    cells = np.concatenate([c for c, _ in parts]).astype(np.int64)
-    votes = np.concatenate([v for _, v in parts])
-    rank = np.repeat(np.arange(len(parts), dtype=np.int64), sizes)
-    # 2. group by cell, newest first, and keep each cell's `window` newest observations
-    idx = np.argsort(cells * len(parts) + rank, kind="stable")
-    cells, votes = cells[idx], votes[idx]
-    starts = np.flatnonzero(np.r_[True, cells[1:] != cells[:-1]])
-    gid = np.cumsum(np.r_[True, cells[1:] != cells[:-1]]) - 1
-    keep = (np.arange(len(cells)) - starts[gid]) < window
-    gid, votes = gid[keep], votes[keep]
-    # 3. one ballot per traversal (ties to the higher class), ballots then votes decide
-    ballot = (NUM_CLASSES - 1) - np.argmax(votes[:, ::-1], axis=1)
-    n = len(starts)
-    ballots = np.bincount(gid * NUM_CLASSES + ballot, minlength=n * NUM_CLASSES).reshape(n, -1)
-    vsum = np.zeros((n, NUM_CLASSES), dtype=np.int64)
-    _add_rows(vsum, gid, votes)
-    score = (ballots.astype(np.int64) << 40) | np.minimum(vsum, (1 << 40) - 1)
-    winner = np.argmax(score, axis=1)
-    winner[vsum[np.arange(n), winner] < min_votes] = 0
-    labels[cells[starts]] = winner.astype(np.uint8)
+    for _, trav in order:
+        cells, ballot, weight = trav.ballots()  # 3. one ballot per traversal and cell
+        if len(order) > window:  # 2. only each cell's `window` newest observations count
+            fresh = seen[cells] < window
+            cells, ballot, weight = cells[fresh], ballot[fresh], weight[fresh]
+        seen[cells] += 1
+        key = cells.astype(np.intp) * NUM_CLASSES + ballot
+        ballots[key] += 1
+        vsum[key] += weight
+    observed = np.flatnonzero(seen)
+    b = ballots.reshape(-1, NUM_CLASSES)[observed].astype(np.int64)
+    v = vsum.reshape(-1, NUM_CLASSES)[observed]
+    winner = np.argmax((b << 32) | v, axis=1)
+    winner[v[np.arange(len(observed)), winner] < min_votes] = 0
+    labels = np.zeros(CELLS_PER_TILE, dtype=np.uint8)
+    labels[observed] = winner
     return labels.reshape(TILE_CELLS, TILE_CELLS)
-
-
-def _add_rows(out: np.ndarray, gid: np.ndarray, votes: np.ndarray) -> None:
-    """out[gid] += votes for sorted gid, by reduceat (much faster than np.add.at)."""
-    starts = np.flatnonzero(np.r_[True, gid[1:] != gid[:-1]])
-    out[gid[starts]] += np.add.reduceat(votes.astype(np.int64), starts, axis=0)
 
 
 class TileCodecCache:
