@@ -7,7 +7,6 @@ and its true labels area-resized per class (argmax of the class coverage), so th
 neither lost nor fattened."""
 
 import logging
-import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -16,12 +15,9 @@ import cv2
 import numpy as np
 
 from common.classes import NUM_CLASSES
-from common.drivelog import DriveLog
 
 logger = logging.getLogger(__name__)
 
-FRAME_STRIDE = 4  # consecutive frames are nearly identical
-TOWN_KM = 1.0
 
 
 def resize_image(rgb: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -45,11 +41,11 @@ def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
         with np.load(cache) as z:
             return z["frames"], z["labels"]
     sim = _sim_available()
-    share = 0.5 if sim else 0.0
+    share = 0.6 if sim else 0.0  # the simulator's renderer gets most of the budget
     frames, labels = _synth_towns(seed, input_size, budget_s * (1 - share),
                                   int(max_frames * (1 - share)))
     if sim:
-        f2, l2 = _render_towns(seed, input_size, budget_s * share, max_frames - len(frames))
+        f2, l2 = _sim_towns(seed, input_size, budget_s * share, max_frames - len(frames))
         frames, labels = np.concatenate([frames, f2]), np.concatenate([labels, l2])
     order = np.random.default_rng(seed).permutation(len(frames))
     frames, labels = frames[order], labels[order]
@@ -60,11 +56,55 @@ def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
 
 def _sim_available() -> bool:
     try:
-        import services.sim.simulate  # noqa: F401
+        from services.sim.render import FrameRenderer  # noqa: F401
     except ImportError:
         logger.warning("simulator renderer not available: training on synth frames only")
         return False
     return True
+
+
+def _sim_towns(seed, input_size, budget_s, max_frames):
+    """The simulator's FrameRenderer (its own random looks per renderer seed) at random poses
+    of procedural towns, with jittered cameras and random lead / parked cars."""
+    from services.segtrain.synth import random_camera, random_pose
+    from services.sim.render import FrameRenderer
+    from services.sim.worlds import load_world
+
+    rng = np.random.default_rng(seed + 7)
+    t0 = time.perf_counter()
+    frames, labels = [], []
+    k = 0
+    while time.perf_counter() - t0 < budget_s and len(frames) < max_frames:
+        world = load_world(f"town:{rng.uniform(0.6, 1.5):.2f}", 20_000 * (seed + 1) + k)
+        for _ in range(4):
+            camera = random_camera(rng)
+            renderer = FrameRenderer(world, camera, seed=int(rng.integers(2**31)))
+            for _ in range(6):
+                pose = random_pose(world, rng)
+                rgb, lab = renderer.render(pose, camera.T_vehicle_camera,
+                                           float(rng.uniform(0, 600)), _random_cars(pose, rng))
+                frames.append(resize_image(rgb, input_size))
+                labels.append(resize_labels(lab, input_size))
+        logger.info("sim town %d: %d frames, %.0f s", k, len(frames), time.perf_counter() - t0)
+        k += 1
+    return np.stack(frames[:max_frames]), np.stack(labels[:max_frames])
+
+
+def _random_cars(pose, rng) -> list:
+    """A lead car (sometimes) and parked cars at the right (sometimes), as the simulator does."""
+    from services.sim.render import Vehicle
+
+    cars = []
+    colour = lambda: tuple(rng.uniform(20, 220, 3))  # noqa: E731
+    if rng.random() < 0.35:
+        cars.append(Vehicle(rng.uniform(8, 30), rng.normal(0, 0.4), rng.normal(0, 0.05),
+                            rng.uniform(3.8, 4.8), rng.uniform(1.7, 1.9), rng.uniform(1.4, 1.7),
+                            colour(), relative=True))
+    for _ in range(int(rng.poisson(0.6))):
+        cars.append(Vehicle(rng.uniform(5, 40), -rng.uniform(2.9, 3.8), rng.normal(0, 0.05),
+                            rng.uniform(3.8, 4.8), rng.uniform(1.7, 1.9), rng.uniform(1.4, 1.7),
+                            colour(), relative=True))
+    return cars
 
 
 def _synth_towns(seed, input_size, budget_s, max_frames):
@@ -83,33 +123,4 @@ def _synth_towns(seed, input_size, budget_s, max_frames):
             labels.append(resize_labels(lab, input_size))
         logger.info("synth town %d: %d frames, %.0f s", k, len(frames), time.perf_counter() - t0)
         k += 1
-    return np.stack(frames[:max_frames]), np.stack(labels[:max_frames])
-
-
-def _render_towns(seed, input_size, budget_s, max_frames):
-    from services.sim.simulate import simulate_drives
-    from services.sim.worlds import load_world
-
-    t0 = time.perf_counter()
-    frames, labels = [], []
-    k = 0
-    with tempfile.TemporaryDirectory(prefix="segtrain-") as tmp:
-        while time.perf_counter() - t0 < budget_s and len(frames) < max_frames:
-            town_seed = 1000 * seed + k
-            world = load_world(f"town:{TOWN_KM:g}", town_seed)
-            out = Path(tmp) / f"t{k}"
-            logs = simulate_drives(world, out, vehicles=2, drives=1, profile="mapping",
-                                   seed=town_seed, images=True, max_km=0.5)
-            for path in logs:
-                log = DriveLog(path)
-                for i in range(int(k % FRAME_STRIDE), len(log), FRAME_STRIDE):
-                    rgb, lab = log.image(i), log.labels(i)
-                    if rgb is None or lab is None:
-                        continue
-                    frames.append(resize_image(rgb, input_size))
-                    labels.append(resize_labels(lab, input_size))
-            shutil.rmtree(out, ignore_errors=True)
-            logger.info("town %d (seed %d): %d frames so far, %.0f s", k, town_seed, len(frames),
-                        time.perf_counter() - t0)
-            k += 1
     return np.stack(frames[:max_frames]), np.stack(labels[:max_frames])
