@@ -135,6 +135,19 @@ class VehicleConfig:
 
 
 @dataclass(frozen=True)
+class MergerConfig:
+    """Tile merger shard (services/merger): evidence rule, debounce, durability."""
+
+    window_traversals: int = 5  # ballots of the newest traversals per cell (repaint in 3)
+    min_votes: int = 2  # votes behind a label, else unknown
+    debounce_s: float = 0.5  # recompress / publish changed tiles at most this often
+    max_batch_patches: int = 4096
+    max_batch_cells: int = 4_000_000
+    sqlite_synchronous: str = "FULL"  # FULL: the ack survives power loss, not just kill -9
+    ingest_queue: int = 256
+
+
+@dataclass(frozen=True)
 class RoadmapConfig:
     bus: BusConfig = field(default_factory=BusConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
@@ -144,6 +157,7 @@ class RoadmapConfig:
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
+    merger: MergerConfig = field(default_factory=MergerConfig)
 
 
 # -- loading -----------------------------------------------------------------------------------
