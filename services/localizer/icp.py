@@ -7,7 +7,7 @@ residuals; directions the geometry does not constrain (lane lines only: along th
 detected from the information matrix's eigenvalues, left out of the update and inflated."""
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -28,6 +28,7 @@ class IcpResult:
     weak_direction: np.ndarray  # unit 3-vector of the least constrained direction
     info_eigs: np.ndarray  # eigenvalues of the (normalized) information matrix, ascending
     iterations: int
+    attitude: np.ndarray = field(default_factory=lambda: np.zeros(0))  # camera (pitch, roll) rad
 
     @property
     def inlier_ratio(self) -> float:
@@ -41,12 +42,13 @@ def _robust_weights(err_m: np.ndarray, huber_m: float) -> np.ndarray:
     return w
 
 
-def _normal_equations(pts_v, nearest, pose, gate_m, huber_m):
+def _normal_equations(pts_v, jac_v, nearest, pose, gate_m, huber_m):
     """Distance of points (vehicle frame) placed at pose to their nearest map cells (0.1 m squares).
 
     The residual is the scalar distance to the cell's square, so points already on a map cell of
     their class add no information: the Hessian comes from the points that are off the map, and
-    steps are full Gauss-Newton steps (point-to-point with dense cells would crawl)."""
+    steps are full Gauss-Newton steps (point-to-point with dense cells would crawl). With
+    jac_v (N, 2, k) = d point / d camera attitude, the attitude gets k extra columns."""
     c, s = math.cos(pose[2]), math.sin(pose[2])
     rx = c * pts_v[:, 0] - s * pts_v[:, 1]
     ry = s * pts_v[:, 0] + c * pts_v[:, 1]
@@ -61,19 +63,31 @@ def _normal_equations(pts_v, nearest, pose, gate_m, huber_m):
     nx = np.where(on, ex / np.where(on, err, 1.0), 0.0)
     ny = np.where(on, ey / np.where(on, err, 1.0), 0.0)
     w = _robust_weights(err, huber_m) * inl
-    # Jacobian row of the distance: n^T [[1, 0, -ry], [0, 1, rx]]
-    J = np.stack([nx, ny, rx * ny - ry * nx], axis=1)
+    # Jacobian row of the distance: n^T [[1, 0, -ry], [0, 1, rx]] (+ n^T R d point / d attitude)
+    cols = [nx, ny, rx * ny - ry * nx]
+    if jac_v is not None:
+        for k in range(jac_v.shape[2]):
+            jx = c * jac_v[:, 0, k] - s * jac_v[:, 1, k]
+            jy = s * jac_v[:, 0, k] + c * jac_v[:, 1, k]
+            cols.append(nx * jx + ny * jy)
+    J = np.stack(cols, axis=1)
     H = (J * w[:, None]).T @ J
     g = J.T @ (w * err)
     return H, g, err, inl, w
 
+
 class Icp:
-    """Point-to-map ICP against a map exposing `nearest(points_world, slots)`."""
+    """Point-to-map ICP against a map exposing `nearest(points_world, slots)`.
+
+    Optionally also estimates the camera's pitch and roll offset of the frame (vibration,
+    calibration error): IPM points move with the attitude by their jacobians (common.camera
+    perturbed), so far points are not mistaken for a longitudinal shift."""
 
     def __init__(self, *, iterations: int = 12, gate_start_m: float = 1.5, gate_end_m: float = 0.4,
                  huber_m: float = 0.1, yaw_lever_m: float = 8.0, degenerate_ratio: float = 1e-3,
                  cov_scale: float = 4.0, point_sigma_m: float = 0.05, probe_m: float = 0.1,
-                 min_sigma_m: float = 0.01, min_sigma_yaw_rad: float = 0.001, min_points: int = 30):
+                 attitude_sigma_rad: float = math.radians(0.6), min_sigma_m: float = 0.01,
+                 min_sigma_yaw_rad: float = 0.001, min_points: int = 30):
         self.iterations = iterations
         self.gate_start_m, self.gate_end_m = gate_start_m, gate_end_m
         self.huber_m = huber_m
@@ -82,37 +96,63 @@ class Icp:
         self.cov_scale = cov_scale  # neighbouring points are correlated: n points != n samples
         self.point_sigma_m = point_sigma_m  # distance noise of one point at the probe poses
         self.probe_m = probe_m
+        self.attitude_prior = (point_sigma_m / attitude_sigma_rad) ** 2
         self.min_sigma_m, self.min_sigma_yaw_rad = min_sigma_m, min_sigma_yaw_rad
         self.min_points = min_points
 
-    def register(self, points_v: np.ndarray, slots: np.ndarray, pose0: np.ndarray, local_map):
-        """Align points (N, 2) of class slots (N,) to the map from an initial pose; None if too few."""
+    def register(self, points_v: np.ndarray, slots: np.ndarray, pose0: np.ndarray, local_map,
+                 jacobians: np.ndarray | None = None):
+        """Align points (N, 2) of class slots (N,) to the map from an initial pose; None if too few.
+
+        jacobians: optional (N, 2, k) derivatives of the points w.r.t. camera pitch and roll."""
         pose = np.asarray(pose0, dtype=np.float64).copy()
         if len(points_v) < self.min_points:
             return None
-        pts = np.asarray(points_v, dtype=np.float64)
+        pts0 = np.asarray(points_v, dtype=np.float64)
+        jac = None if jacobians is None else np.asarray(jacobians, dtype=np.float64)
+        att = np.zeros(0 if jac is None else jac.shape[2])
         scale = np.array([1.0, 1.0, self.yaw_lever_m])  # information in comparable units
         it = 0
         for it in range(self.iterations):
             gate = self.gate_start_m + (self.gate_end_m - self.gate_start_m) * it / max(
                 self.iterations - 1, 1)
+            pts = _moved(pts0, jac, att)
             nearest, valid = local_map.nearest(_to_world(pts, pose), slots)
-            H, g, err, inl, w = _normal_equations(pts[valid], nearest[valid], pose, gate,
-                                                  self.huber_m)
+            H, g, err, inl, w = _normal_equations(pts[valid], None if jac is None else jac[valid],
+                                                  nearest[valid], pose, gate, self.huber_m)
             if inl.sum() < self.min_points:
                 return None
-            step = _constrained_step(H, g, scale, self.degenerate_ratio)
+            step, d_att = self._step(H, g, att, scale)
             pose = pose + step
             pose[2] = float(wrap_angle(pose[2]))
+            att = att + d_att
             if np.abs(step[:2]).max() < 1e-4 and abs(step[2]) < 1e-5 and it >= 2:
                 break
-        return self._result(pts, slots, pose, local_map, scale, it + 1)
+        return self._result(_moved(pts0, jac, att), jac, slots, pose, local_map, scale, it + 1, att)
 
-    def _result(self, pts, slots, pose, local_map, scale, iterations) -> IcpResult:
+    def _step(self, H, g, att, scale):
+        """Pose step in the constrained directions (attitude eliminated), then the attitude step."""
+        if len(att) == 0:
+            return _constrained_step(H, g, scale, self.degenerate_ratio), att
+        Hpp, Hpa, Haa = H[:3, :3], H[:3, 3:], H[3:, 3:] + self.attitude_prior * np.eye(len(att))
+        gp, ga = g[:3], g[3:] + self.attitude_prior * att
+        Haa_inv = np.linalg.inv(Haa)
+        step = _constrained_step(Hpp - Hpa @ Haa_inv @ Hpa.T, gp - Hpa @ Haa_inv @ ga, scale,
+                                 self.degenerate_ratio)
+        return step, -Haa_inv @ (ga + Hpa.T @ step)
+
+    def _pose_information(self, H, n_att):
+        if n_att == 0:
+            return H
+        Haa = H[3:, 3:] + self.attitude_prior * np.eye(n_att)
+        return H[:3, :3] - H[:3, 3:] @ np.linalg.solve(Haa, H[3:, :3])
+
+    def _result(self, pts, jac, slots, pose, local_map, scale, iterations, att) -> IcpResult:
         nearest, valid = local_map.nearest(_to_world(pts, pose), slots)
-        _, _, err, inl, w = _normal_equations(pts[valid], nearest[valid], pose, self.gate_end_m,
-                                              self.huber_m)
-        H = self._smoothed_information(pts, slots, pose, local_map, scale)
+        _, _, err, inl, w = _normal_equations(pts[valid], None, nearest[valid], pose,
+                                              self.gate_end_m, self.huber_m)
+        H = self._pose_information(self._smoothed_information(pts, jac, slots, pose, local_map,
+                                                              scale), len(att))
         cov, inflation, eigs, weak, degenerate = _covariance(H, scale, self.degenerate_ratio)
         cov = cov * self.point_sigma_m**2 * self.cov_scale + inflation
         cov[0, 0] += self.min_sigma_m**2
@@ -120,23 +160,28 @@ class Icp:
         cov[2, 2] += self.min_sigma_yaw_rad**2
         n = int(inl.sum())
         rmse = float(np.sqrt(np.mean(err[inl] ** 2))) if n else float("inf")
-        return IcpResult(pose, cov, n, len(pts), rmse, degenerate, weak, eigs, iterations)
+        return IcpResult(pose, cov, n, len(pts), rmse, degenerate, weak, eigs, iterations, att)
 
-    def _smoothed_information(self, pts, slots, pose, local_map, scale):
+    def _smoothed_information(self, pts, jac, slots, pose, local_map, scale):
         """Information matrix averaged over poses a probe step away in each direction.
 
         At the optimum most points sit on their map cells (zero distance, no gradient); the
         curvature of the cost just around the optimum is what constrains the pose."""
-        H = np.zeros((3, 3))
+        H = 0.0
         for k in range(3):
             for sign in (-1.0, 1.0):
                 probe = pose.copy()
                 probe[k] += sign * self.probe_m / scale[k]
                 nearest, valid = local_map.nearest(_to_world(pts, probe), slots)
-                Hk, *_ = _normal_equations(pts[valid], nearest[valid], probe, self.gate_end_m,
-                                           self.huber_m)
-                H += Hk / 6.0
+                Hk, *_ = _normal_equations(pts[valid], None if jac is None else jac[valid],
+                                           nearest[valid], probe, self.gate_end_m, self.huber_m)
+                H = H + Hk / 6.0
         return H
+
+
+def _moved(pts0, jac, att):
+    return pts0 if jac is None or len(att) == 0 else pts0 + jac @ att
+
 
 def _to_world(pts_v: np.ndarray, pose: np.ndarray) -> np.ndarray:
     c, s = math.cos(pose[2]), math.sin(pose[2])

@@ -70,15 +70,18 @@ class Localizer:
             return False
         return self.ekf.update_position(xy_m, sigma)
 
-    def process_frame(self, t_ns: int, points_v: np.ndarray, classes: np.ndarray) -> Estimate:
-        """Match one frame's semantic points (vehicle frame) to the map and fuse the result."""
-        pts, cls = self._thin(np.asarray(points_v, float), np.asarray(classes))
+    def process_frame(self, t_ns: int, points_v: np.ndarray, classes: np.ndarray,
+                      jacobians: np.ndarray | None = None) -> Estimate:
+        """Match one frame's semantic points (vehicle frame) to the map and fuse the result.
+
+        jacobians: optional (N, 2, 2) point derivatives w.r.t. camera pitch and roll."""
+        pts, cls, jac = self._thin(np.asarray(points_v, float), np.asarray(classes), jacobians)
         self.submap.append((self.odom.copy(), pts, cls))
         if not self.ekf.initialized:
             diag = self._try_initialize()
             if not self.ekf.initialized:
                 return Estimate(t_ns, np.full(3, np.nan), np.eye(3) * 1e6, False, diag)
-        result = self.icp.register(pts, class_slots(cls), self.ekf.pose, self.cache)
+        result = self.icp.register(pts, class_slots(cls), self.ekf.pose, self.cache, jac)
         accepted = result is not None and self.ekf.update_pose(result.pose, result.cov)
         diag = self._frame_diag(result, accepted)
         self._watch_integrity(result, accepted)
@@ -86,17 +89,16 @@ class Localizer:
 
     # -- steps ------------------------------------------------------------------------------
 
-    def _thin(self, pts, cls):
+    def _thin(self, pts, cls, jac=None):
         """Keep matched classes; cap road points to a share and the total to max_points."""
-        keep = class_slots(cls) >= 0
-        pts, cls = pts[keep], cls[keep]
-        road = np.flatnonzero(cls == Cls.ROAD)
-        paint = np.flatnonzero(cls != Cls.ROAD)
+        keep = np.flatnonzero(class_slots(cls) >= 0)
+        road = np.flatnonzero(cls[keep] == Cls.ROAD)
+        paint = np.flatnonzero(cls[keep] != Cls.ROAD)
         n_paint = min(len(paint), int(self.max_points * (1 - self.road_fraction)))
         n_road = min(len(road), self.max_points - n_paint)
-        idx = np.concatenate([self._rng.choice(paint, n_paint, replace=False),
-                              self._rng.choice(road, n_road, replace=False)]).astype(np.int64)
-        return pts[idx], cls[idx]
+        idx = keep[np.concatenate([self._rng.choice(paint, n_paint, replace=False),
+                                   self._rng.choice(road, n_road, replace=False)]).astype(np.int64)]
+        return pts[idx], cls[idx], None if jac is None else np.asarray(jac, float)[idx]
 
     def _try_initialize(self) -> dict:
         """Coarse search + ICP refine on the submap of the last frames, once enough is seen."""
@@ -163,7 +165,8 @@ class Localizer:
              "nis": round(self.ekf.last_nis, 3), "sigma_m": round(self.ekf.position_sigma_m, 4)}
         if res is not None:
             d.update(points=res.points, inliers=res.inliers, rmse_m=round(res.rmse_m, 4),
-                     degenerate=bool(res.degenerate), iterations=res.iterations)
+                     degenerate=bool(res.degenerate), iterations=res.iterations,
+                     att=[round(float(a), 5) for a in res.attitude])
         return d
 
     def _watch_integrity(self, res: IcpResult | None, accepted: bool) -> None:
@@ -207,7 +210,8 @@ def get_localizer(lc, cache: TileCache, seed: int = 0) -> Localizer:
 
 
 def replay(localizer: Localizer, streams: dict, frame_points, on_estimate=None) -> list[Estimate]:
-    """Feed a drive's sensor streams in time order; frame_points(i) -> (points_v, classes);
+    """Feed a drive's sensor streams in time order; frame_points(i) -> (points_v, classes[,
+    jacobians]);
     on_estimate(i, estimate) is called after every frame.
 
     Odometry speed and gyro rate are held between their samples; every input first advances
@@ -226,8 +230,7 @@ def replay(localizer: Localizer, streams: dict, frame_points, on_estimate=None) 
                 localizer.correct_gnss(int(t_ns), streams["gnss_xy_m"][i],
                                        float(streams["gnss_sigma_m"][i]))
         else:
-            pts, cls = frame_points(i)
-            out.append(localizer.process_frame(int(t_ns), pts, cls))
+            out.append(localizer.process_frame(int(t_ns), *frame_points(i)))
             if on_estimate is not None:
                 on_estimate(i, out[-1])
     return out

@@ -15,12 +15,12 @@ import numpy as np
 
 from common import codec, keys
 from common.bus import open_session
-from common.camera import build_ipm_lookup
 from common.config import to_toml
 from common.drivelog import DriveLog
 from common.errors import DriveLogError
 from common.geometry import quat_wxyz_from_yaw
 from common.messages import Pose
+from services.localizer.frames import FramePoints
 from services.localizer.localizer import get_localizer, replay
 from services.localizer.map_cache import TileCache
 from services.localizer.metrics import localization_metrics, summary_line
@@ -90,7 +90,7 @@ def localize_log(log: DriveLog, cfg, session, vehicle: str, out: Path) -> dict:
 
 
 class _FrameSource:
-    """Frame i -> semantic ground points (vehicle frame) and classes: segment, then IPM."""
+    """Frame i -> ground points (vehicle frame), classes and attitude jacobians: segment, IPM."""
 
     def __init__(self, log: DriveLog, cfg):
         from common.segmentation import get_segmenter
@@ -98,8 +98,8 @@ class _FrameSource:
         self.log = log
         lc, roi = cfg.localizer, cfg.roi
         self.stride = lc.ipm_stride
-        self.ipm = build_ipm_lookup(log.meta.camera, x_min_m=roi.x_min_m, length_m=roi.length_m,
-                                    width_m=roi.width_m)
+        self.ipm = FramePoints(log.meta.camera, x_min_m=roi.x_min_m, length_m=roi.length_m,
+                               width_m=roi.width_m)
         if lc.segmenter == "truth":
             self.segmenter = get_segmenter("truth", seed=1)
         else:
@@ -114,7 +114,7 @@ class _FrameSource:
         if image is None and truth is None:
             raise DriveLogError(f"{self.log.root}: frame {i} has neither an image nor labels")
         labels = self.segmenter.segment(image, truth)
-        return self.ipm.lookup(labels, stride=self.stride)
+        return self.ipm.points(labels, stride=self.stride)
 
 
 def _wanted_tiles(loc, streams, i: int, lc):
