@@ -113,6 +113,7 @@ class _Node:
     raw_delta: np.ndarray  # uncalibrated odometry from the previous node (scale 1, bias 0)
     delta: np.ndarray  # calibrated odometry from the previous node
     covered: bool = False
+    precise: bool = False  # covered by a fix good enough to calibrate odometry with
 
 
 @dataclass
@@ -122,7 +123,8 @@ class PoseEstimator:
     settle_lag_s: a frame is settled once a good GNSS fix at least this much later is in the graph
     (so an outage holds its frames until GNSS returns); max_wait_s: commit anyway after this long;
     calib_window_s: length of the windows that calibrate odometry scale and gyro bias;
-    init_baseline_m: GNSS travel needed to fix the initial heading; calibrate: estimate scale/bias."""
+    init_baseline_m: GNSS travel needed to fix the initial heading; calibrate: estimate scale/bias
+    (only from windows covered by fixes with sigma <= calib_max_gnss_sigma_m, i.e. RTK)."""
 
     settle_lag_s: float = 1.0
     max_wait_s: float = 120.0
@@ -130,6 +132,7 @@ class PoseEstimator:
     init_baseline_m: float = 5.0
     calibrate: bool = True
     gnss_sigma_floor_m: float = 0.01
+    calib_max_gnss_sigma_m: float = 0.2  # consumer GNSS is too coarse to calibrate with
     graph: PoseGraph = field(default_factory=PoseGraph)
     calibration: Calibration = field(default_factory=Calibration)
 
@@ -233,20 +236,18 @@ class PoseEstimator:
                 self.graph.mark_large_correction()
             self._last_fix_ns = t_g if self._last_fix_ns is None else max(self._last_fix_ns, t_g)
             self._fixes.append((k, t_g, xy, max(sigma, self.gnss_sigma_floor_m)))
-            self._mark_covered(k, t_g)
+            self._mark_covered(k, t_g, sigma <= self.calib_max_gnss_sigma_m)
         self._pending_fixes = keep
         if self._initialized:
             self._flush_fixes()
 
-    def _mark_covered(self, k: int, t_g: int) -> None:
-        j = k
-        while j >= 0 and abs(self._nodes[j].t_ns - t_g) * NS <= COVERED_S:
-            self._nodes[j].covered = True
-            j -= 1
-        j = k + 1
-        while j < len(self._nodes) and abs(self._nodes[j].t_ns - t_g) * NS <= COVERED_S:
-            self._nodes[j].covered = True
-            j += 1
+    def _mark_covered(self, k: int, t_g: int, precise: bool) -> None:
+        for step in (-1, 1):
+            j = k if step < 0 else k + 1
+            while 0 <= j < len(self._nodes) and abs(self._nodes[j].t_ns - t_g) * NS <= COVERED_S:
+                self._nodes[j].covered = True
+                self._nodes[j].precise |= precise
+                j += step
 
     def _fix_at_node(self, k: int, t_g: int, xy: np.ndarray, yaw_k: float) -> np.ndarray:
         """Move a fix taken at t_g to node k's time along the heading (speed x time offset)."""
@@ -299,11 +300,11 @@ class PoseEstimator:
 
     def _calibrate_upto(self, j: int) -> None:
         """Close a calibration window ending at settled node j if the whole window had GNSS."""
-        if self._calib_start is None or not self._nodes[j].covered:
-            self._calib_start = j if self._nodes[j].covered else None
+        if self._calib_start is None or not self._nodes[j].precise:
+            self._calib_start = j if self._nodes[j].precise else None
             return
         i = self._calib_start
-        if not all(n.covered for n in self._nodes[i: j + 1]):
+        if not all(n.precise for n in self._nodes[i: j + 1]):
             self._calib_start = j
             return
         span_s = (self._nodes[j].t_ns - self._nodes[i].t_ns) * NS
