@@ -1,0 +1,107 @@
+"""Vehicle motion along a route: a lateral offset in the lane that varies per drive, a speed
+profile limited by curvature (lateral acceleration) and by acceleration/braking limits, and the
+resulting true trajectory sampled at any rate. Local ENU metres, seconds, radians."""
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.sim import paint
+
+A_LAT_MAX = 2.0  # m/s^2, comfortable cornering
+A_ACC = 1.2  # m/s^2
+A_BRAKE = 2.0  # m/s^2
+V_START = 2.0  # m/s: starts rolling
+
+
+@dataclass
+class Trajectory:
+    """True motion as a function of time: sampled densely, interpolated on demand."""
+
+    t_s: np.ndarray  # (N,) from 0
+    xy: np.ndarray  # (N, 2)
+    yaw: np.ndarray  # (N,) unwrapped
+    speed: np.ndarray  # (N,) m/s
+    yaw_rate: np.ndarray  # (N,) rad/s
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.t_s[-1])
+
+    def poses(self, t_s: np.ndarray) -> np.ndarray:
+        """(x, y, yaw) at times t (yaw wrapped to [-pi, pi))."""
+        x = np.interp(t_s, self.t_s, self.xy[:, 0])
+        y = np.interp(t_s, self.t_s, self.xy[:, 1])
+        yaw = np.interp(t_s, self.t_s, self.yaw)
+        return np.stack([x, y, (yaw + np.pi) % (2 * np.pi) - np.pi], axis=1)
+
+    def at(self, t_s: np.ndarray, what: str) -> np.ndarray:
+        return np.interp(t_s, self.t_s, getattr(self, what))
+
+
+def driven_path(route: np.ndarray, rng, *, max_len_m: float | None, step_m: float = 0.5,
+                offset_m: float = 0.0, wobble_m: float = 0.25) -> np.ndarray:
+    """The route resampled every step_m, shifted sideways by offset_m plus a slow wobble."""
+    path = paint.resample(route, step_m)
+    if max_len_m is not None:
+        path = path[: max(2, int(max_len_m / step_m) + 1)]
+    s = np.arange(len(path)) * step_m
+    wobble = sum(wobble_m / 2 * math.sqrt(1 / (k + 1)) * np.sin(2 * np.pi * s / lam + ph)
+                 for k, (lam, ph) in enumerate(zip(rng.uniform(60, 300, 3), rng.uniform(0, 6.3, 3))))
+    path = path + (offset_m + wobble)[:, None] * paint.normals(path)
+    return _smooth(path, 7)
+
+
+def _smooth(path: np.ndarray, k: int) -> np.ndarray:
+    """Moving average (ends kept) so that curvature is bounded and differentiable."""
+    if len(path) <= 2 * k:
+        return path
+    kernel = np.ones(2 * k + 1) / (2 * k + 1)
+    out = path.copy()
+    for d in range(2):
+        padded = np.concatenate([np.full(k, path[0, d]), path[:, d], np.full(k, path[-1, d])])
+        out[:, d] = np.convolve(padded, kernel, mode="valid")
+    return out
+
+
+def speed_profile(s: np.ndarray, kappa: np.ndarray, rng, *, v_min: float = 8.0,
+                  v_max: float = 15.0) -> np.ndarray:
+    """Target speed per station: a cruise speed that drifts in [v_min, v_max], capped by
+    sqrt(a_lat / kappa) in curves, then limited by acceleration and braking."""
+    n = len(s)
+    cruise = np.interp(s, np.linspace(0, s[-1], 8) if s[-1] > 0 else np.zeros(8),
+                       rng.uniform(v_min, v_max, 8))
+    v = np.minimum(cruise, np.sqrt(A_LAT_MAX / np.maximum(np.abs(kappa), 1e-6)))
+    v[0] = V_START
+    ds = np.diff(s)
+    for i in range(1, n):  # acceleration limit, forward
+        v[i] = min(v[i], math.sqrt(v[i - 1] ** 2 + 2 * A_ACC * ds[i - 1]))
+    for i in range(n - 2, -1, -1):  # braking limit, backward
+        v[i] = min(v[i], math.sqrt(v[i + 1] ** 2 + 2 * A_BRAKE * ds[i]))
+    return np.maximum(v, 0.5)
+
+
+def curvature(path: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(station s, unwrapped heading, curvature) of a polyline."""
+    s = paint.arc_length(path)
+    d = np.gradient(path, axis=0)
+    yaw = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+    kappa = np.gradient(yaw) / np.maximum(np.gradient(s), 1e-6)
+    return s, yaw, kappa
+
+
+def drive(route: np.ndarray, rng, *, max_len_m: float | None = None, offset_m: float = 0.0,
+          rate_hz: float = 100.0) -> Trajectory:
+    """Drive a route: path, speed profile, then time-sample it at rate_hz."""
+    path = driven_path(route, rng, max_len_m=max_len_m, offset_m=offset_m)
+    s, yaw, kappa = curvature(path)
+    v = speed_profile(s, kappa, rng)
+    # time at each station: trapezoid of ds / v
+    t = np.concatenate([[0.0], np.cumsum(2 * np.diff(s) / (v[1:] + v[:-1]))])
+    ts = np.arange(0.0, t[-1], 1.0 / rate_hz)
+    si = np.interp(ts, t, s)
+    xy = np.stack([np.interp(si, s, path[:, 0]), np.interp(si, s, path[:, 1])], axis=1)
+    yaw_t = np.interp(si, s, yaw)
+    speed = np.interp(ts, t, v)
+    return Trajectory(ts, xy, yaw_t, speed, np.gradient(yaw_t, ts))

@@ -1,0 +1,342 @@
+"""Camera renderer: the world's ground plane seen through a (vibrating) front camera.
+
+Per camera a ray table is computed once (undistorted normalized coordinates of every pixel
+centre, u + 0.5, v + 0.5 as in common.camera's IPM). Per frame: rotate the rays by the frame's
+camera, intersect them with z = 0 (paper eq. 1 in reverse), move the ground points into the world
+and cv2.remap the world-frame label window (0.1 m tiles) and world-anchored textures into the image.
+Pixels above the horizon or beyond the window get label 0. The RGB image adds asphalt texture,
+worn and faded paint, shadows, lighting, haze, sky and roadside, other vehicles (label 0), blur and
+noise, all drawn from a seeded Appearance so that a drive renders the same every time."""
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from common.camera import CameraModel, undistort_normalized
+from common.classes import Cls
+from common.grid import CELL_M
+from common.world import World
+from services.sim.raster import TileCache
+
+SKY_BINS = 3600
+
+
+class GroundRays:
+    """Per-pixel rays of one camera model (intrinsics + distortion), built once."""
+
+    def __init__(self, camera: CameraModel):
+        self.width, self.height = camera.width, camera.height
+        v, u = np.mgrid[0:camera.height, 0:camera.width]
+        uv = np.stack([u.ravel() + 0.5, v.ravel() + 0.5], axis=1).astype(np.float64)
+        norm = undistort_normalized(uv, camera.K, camera.dist)
+        self.xc = norm[:, 0].reshape(camera.height, camera.width).astype(np.float32)
+        self.yc = norm[:, 1].reshape(camera.height, camera.width).astype(np.float32)
+
+    def ground(self, T_vehicle_camera: np.ndarray, max_range_m: float = 250.0):
+        """Ground points (gx, gy) in the vehicle frame, their distance, and the ground mask."""
+        R, t = T_vehicle_camera[:3, :3].astype(np.float32), T_vehicle_camera[:3, 3]
+        rx = R[0, 0] * self.xc + R[0, 1] * self.yc + R[0, 2]
+        ry = R[1, 0] * self.xc + R[1, 1] * self.yc + R[1, 2]
+        rz = R[2, 0] * self.xc + R[2, 1] * self.yc + R[2, 2]
+        down = rz < -1e-4
+        lam = np.where(down, np.float32(-t[2]) / np.where(down, rz, -1.0), np.float32(np.inf))
+        horiz = np.sqrt(rx * rx + ry * ry)
+        dist = lam * horiz
+        ok = down & (dist < max_range_m)
+        lam = np.where(ok, lam, 0.0).astype(np.float32)
+        gx = np.float32(t[0]) + lam * rx
+        gy = np.float32(t[1]) + lam * ry
+        return gx, gy, np.where(ok, dist, np.float32(max_range_m)), ok, (rx, ry, rz)
+
+
+@dataclass
+class FrameGeometry:
+    wx: np.ndarray  # world x of each pixel's ground point (H, W) float32
+    wy: np.ndarray
+    dist: np.ndarray  # metres from the camera along the ground
+    ground: np.ndarray  # bool: the ray hits the ground inside the range
+    rays: tuple  # (rx, ry, rz) in the vehicle frame
+
+
+class LabelRenderer:
+    """True label images: the world's labels seen through the camera (0 above the horizon)."""
+
+    def __init__(self, world: World, camera: CameraModel, radius_tiles: int = 2):
+        self.rays = GroundRays(camera)
+        self.tiles = TileCache(world, radius_tiles=radius_tiles)
+
+    def geometry(self, pose, T_vehicle_camera) -> FrameGeometry:
+        gx, gy, dist, ok, rays = self.rays.ground(T_vehicle_camera)
+        c, s = np.float32(math.cos(pose[2])), np.float32(math.sin(pose[2]))
+        wx = np.float32(pose[0]) + c * gx - s * gy
+        wy = np.float32(pose[1]) + s * gx + c * gy
+        return FrameGeometry(wx, wy, dist, ok, rays)
+
+    def labels(self, pose, T_vehicle_camera, geo: FrameGeometry | None = None):
+        """(labels (H, W) uint8, geometry, window) for a vehicle pose (x, y, yaw)."""
+        geo = geo or self.geometry(pose, T_vehicle_camera)
+        window, x0, y0 = self.tiles.window(pose[0], pose[1])
+        mx = np.where(geo.ground, (geo.wx - np.float32(x0)) / np.float32(CELL_M) - 0.5, -10.0)
+        my = np.where(geo.ground, (geo.wy - np.float32(y0)) / np.float32(CELL_M) - 0.5, -10.0)
+        mx, my = mx.astype(np.float32), my.astype(np.float32)
+        lab = cv2.remap(window, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                        borderValue=0)
+        return lab, geo, (window, mx, my)
+
+
+# -- appearance --------------------------------------------------------------------------------
+
+
+def _noise_texture(rng, size: int, blur_px: float, lo: float, hi: float) -> np.ndarray:
+    """Tileable smooth noise in [lo, hi] (float32), wrapped so remap can use BORDER_WRAP."""
+    n = rng.normal(size=(size, size)).astype(np.float32)
+    if blur_px > 0:
+        n = cv2.GaussianBlur(np.tile(n, (3, 3)), (0, 0), blur_px)[size:2 * size, size:2 * size]
+    n = (n - n.min()) / max(float(n.max() - n.min()), 1e-6)
+    return (lo + (hi - lo) * n).astype(np.float32)
+
+
+def _shadow_texture(rng, size: int, res_m: float, density: float) -> np.ndarray:
+    """Tree and building shadows: blurred random ellipses and long bands (1 = full shadow)."""
+    img = np.zeros((size, size), np.float32)
+    for _ in range(int(density * 60)):
+        c = (int(rng.integers(size)), int(rng.integers(size)))
+        axes = (int(rng.uniform(1.0, 5.0) / res_m), int(rng.uniform(1.0, 4.0) / res_m))
+        cv2.ellipse(img, c, axes, float(rng.uniform(0, 180)), 0, 360, 1.0, -1)
+    for _ in range(int(density * 6)):
+        x, y = int(rng.integers(size)), int(rng.integers(size))
+        w, h = int(rng.uniform(8, 40) / res_m), int(rng.uniform(4, 20) / res_m)
+        cv2.rectangle(img, (x, y), (x + w, y + h), 1.0, -1)
+    img = cv2.GaussianBlur(np.tile(img, (3, 3)), (0, 0), 0.4 / res_m)[size:2 * size, size:2 * size]
+    return np.clip(img, 0.0, 1.0)
+
+
+@dataclass
+class Vehicle:
+    """Another car: a box on the ground, pose in the world or relative to the ego vehicle."""
+
+    x: float
+    y: float
+    yaw: float
+    length: float
+    width: float
+    height: float
+    color: tuple
+    relative: bool = False  # pose in the ego vehicle frame (a lead car)
+
+
+class Appearance:
+    """Everything random about how a drive looks, drawn once from a seed."""
+
+    def __init__(self, rng: np.random.Generator):
+        g = rng.uniform(75, 125)
+        tint = rng.uniform(-6, 6, 3)
+        self.asphalt_rgb = np.array([g, g, g + rng.uniform(0, 6)]) + tint
+        self.offroad_rgb = [np.array([70, 105, 55]), np.array([150, 148, 140]),
+                            np.array([120, 100, 75]), np.array([95, 95, 90])][int(rng.integers(4))] \
+            * rng.uniform(0.8, 1.15)
+        self.paint_rgb = np.array([235, 235, 228]) * rng.uniform(0.85, 1.0)
+        self.fade = rng.uniform(0.45, 1.0)  # how much of the paint is left
+        self.wear_level = rng.uniform(0.0, 0.3)  # worn fraction of paint
+        self.gain = rng.uniform(0.65, 1.3)
+        self.gain_wobble = rng.uniform(0.0, 0.15)  # clouds
+        self.colour_cast = rng.uniform(0.92, 1.08, 3)
+        self.shadow_strength = rng.uniform(0.0, 0.6) if rng.random() < 0.8 else 0.0
+        self.sky_top = np.array([70, 120, 200]) * rng.uniform(0.7, 1.2) if rng.random() < 0.6 \
+            else np.array([170, 175, 180]) * rng.uniform(0.8, 1.1)
+        self.haze_rgb = np.clip(self.sky_top * 0.5 + 110, 0, 255)
+        self.fog_m = rng.uniform(60.0, 250.0)
+        self.blur_prob = rng.uniform(0.0, 0.4)
+        self.noise_sigma = rng.uniform(1.5, 7.0)
+        self.tex_fine = _noise_texture(rng, 256, 0.7, 0.82, 1.18)  # 4 cm cells
+        self.tex_coarse = _noise_texture(rng, 256, 6.0, 0.8, 1.2)  # 0.5 m cells
+        self.wear = _noise_texture(rng, 256, 1.5, 0.0, 1.0)  # 5 cm cells
+        self.shadow = _shadow_texture(rng, 512, 0.25, rng.uniform(0.3, 1.5))
+        self.skyline_elev = self._skyline(rng)
+        palette = np.array([[120, 118, 115], [150, 140, 125], [140, 95, 80], [95, 100, 105],
+                            [175, 170, 160], [60, 80, 55], [45, 65, 45], [110, 105, 95]], float)
+        self.skyline_rgb = (palette[rng.integers(len(palette), size=64)]
+                            * rng.uniform(0.75, 1.2, (64, 1)))
+        for name in ("asphalt_rgb", "offroad_rgb", "paint_rgb", "sky_top", "haze_rgb",
+                     "skyline_rgb"):
+            setattr(self, name, (getattr(self, name) * self.colour_cast).astype(np.float32))
+
+    @staticmethod
+    def _skyline(rng) -> np.ndarray:
+        """Elevation (rad) of buildings/trees over azimuth bins of the world frame."""
+        elev = np.zeros(SKY_BINS, np.float32)
+        i = 0
+        while i < SKY_BINS:
+            w = int(rng.integers(20, 160))
+            kind = rng.random()
+            h = math.radians(rng.uniform(1.0, 14.0)) if kind < 0.7 else 0.0
+            if kind > 0.85:  # trees: rounded
+                h = math.radians(rng.uniform(3, 10)) * np.sin(np.linspace(0, np.pi, w)) ** 0.5
+            elev[i:i + w] = h if np.isscalar(h) else h[: len(elev[i:i + w])]
+            i += w
+        return elev
+
+
+class FrameRenderer:
+    """RGB and label images of a drive: geometry from LabelRenderer, looks from Appearance."""
+
+    def __init__(self, world: World, camera: CameraModel, seed: int = 0):
+        self.rng = np.random.default_rng(seed)
+        self.look = Appearance(self.rng)
+        self.labeler = LabelRenderer(world, camera)
+        self.camera = camera
+        self.h, self.w = camera.height, camera.width
+        yy, xx = np.mgrid[0:self.h, 0:self.w].astype(np.float32)
+        r2 = ((xx - self.w / 2) / self.w) ** 2 + ((yy - self.h / 2) / self.h) ** 2
+        self.vignette = (1.0 - 0.35 * r2).astype(np.float32)[..., None]
+        self._paint_cache = None
+        self.noise = [self.rng.normal(0, self.look.noise_sigma, (self.h, self.w, 3)).astype(np.float32)
+                      for _ in range(4)]
+
+    def _paint_window(self, window):
+        """Road and paint masks of the label window (uint8, for linear interpolation)."""
+        if self._paint_cache is None or self._paint_cache[0] is not window:
+            road = (window >= Cls.ROAD).astype(np.uint8) * 255
+            paint = (window >= Cls.LANE_LINE).astype(np.uint8) * 255
+            # soften the 0.1 m cell steps; _ground re-sharpens around the half level
+            paint = cv2.GaussianBlur(paint, (0, 0), 0.6)
+            self._paint_cache = (window, road, paint)
+        return self._paint_cache[1], self._paint_cache[2]
+
+    def labels(self, pose, T_vehicle_camera, vehicles=()) -> np.ndarray:
+        lab, geo, _ = self.labeler.labels(pose, T_vehicle_camera)
+        for hull, _, _ in self._vehicle_items(pose, T_vehicle_camera, vehicles):
+            cv2.fillPoly(lab, [hull], 0)
+        return lab
+
+    def render(self, pose, T_vehicle_camera, t_s: float, vehicles=()):
+        """(rgb uint8 (H, W, 3), labels uint8 (H, W)) of one frame."""
+        lab, geo, (window, mx, my) = self.labeler.labels(pose, T_vehicle_camera)
+        rgb = self._ground(geo, window, mx, my, t_s)
+        rgb = self._sky(rgb, geo, pose)
+        rgb = self._vehicles(rgb, lab, pose, T_vehicle_camera, vehicles)
+        return self._sensor(rgb), lab
+
+    # -- layers --------------------------------------------------------------------------------
+
+    def _remap_wrap(self, tex, wx, wy, res_m):
+        mx = (wx * np.float32(1.0 / res_m)).astype(np.float32)
+        my = (wy * np.float32(1.0 / res_m)).astype(np.float32)
+        n = np.float32(tex.shape[0])
+        mx -= np.floor(mx / n) * n  # wrap explicitly: keeps float32 precision far from 0
+        my -= np.floor(my / n) * n
+        return cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+
+    def _ground(self, geo, window, mx, my, t_s):
+        """Asphalt / roadside with texture, worn paint, shadows, lighting and haze (H, W, 3)."""
+        look = self.look
+        road_w, paint_w = self._paint_window(window)
+        road = cv2.remap(road_w, mx, my, cv2.INTER_LINEAR).astype(np.float32) * np.float32(1 / 255)
+        paint = cv2.remap(paint_w, mx, my, cv2.INTER_LINEAR).astype(np.float32)
+        paint = np.clip((paint - 70.0) * np.float32(1 / 115), 0.0, 1.0)  # sharpen the blurred mask
+        wx, wy = geo.wx, geo.wy
+        fine = self._remap_wrap(look.tex_fine, wx, wy, 0.04)
+        near = np.clip(1.0 - geo.dist * np.float32(1 / 40.0), 0.0, 1.0)
+        tex = (1.0 + (fine - 1.0) * near) * self._remap_wrap(look.tex_coarse, wx, wy, 0.5)
+        wear = self._remap_wrap(look.wear, wx, wy, 0.05)
+        paint *= np.clip((wear - look.wear_level) * 4.0, 0.0, 1.0) * np.float32(look.fade)
+        gain = np.float32(look.gain * (1.0 + look.gain_wobble * math.sin(0.07 * t_s)))
+        shade = (1.0 - look.shadow_strength * self._remap_wrap(look.shadow, wx, wy, 0.25)) * gain
+        fog = np.clip(geo.dist * np.float32(1.0 / look.fog_m), 0.0, 1.0) ** 1.5
+        keep = shade * (1.0 - fog)
+        base = look.offroad_rgb + (look.asphalt_rgb - look.offroad_rgb) * road[..., None]
+        col = base * (tex * keep * (1.0 - paint))[..., None]
+        col += look.paint_rgb * (paint * keep)[..., None]
+        col += look.haze_rgb * fog[..., None]
+        return col
+
+    def _sky(self, rgb, geo, pose):
+        """Sky gradient and a world-fixed skyline (buildings, trees) where no ground is seen."""
+        look = self.look
+        small = (self.w // 4, self.h // 4)
+        rx, ry, rz = (cv2.resize(r, small, interpolation=cv2.INTER_AREA) for r in geo.rays)
+        elev = np.arctan2(rz, np.sqrt(rx * rx + ry * ry))
+        az = (np.arctan2(ry, rx) + pose[2]) % (2 * np.pi)
+        b = (az * (SKY_BINS / (2 * np.pi))).astype(np.int32) % SKY_BINS
+        t = np.clip(elev / 0.5, 0.0, 1.0)[..., None]
+        sky = look.haze_rgb + (look.sky_top - look.haze_rgb) * t
+        building = (elev < look.skyline_elev[b]) & (elev > -0.03)
+        bcol = look.skyline_rgb[(b // 37) % len(look.skyline_rgb)]
+        windows = ((b % 7) < 3) & ((elev * 150.0) % 3.0 < 1.4) & (look.skyline_elev[b] > 0.05)
+        bcol = bcol * np.where(windows, 0.6, 1.0)[..., None] * look.gain
+        sky = np.where(building[..., None], bcol, sky).astype(np.float32)
+        sky = cv2.resize(sky, (self.w, self.h), interpolation=cv2.INTER_LINEAR)
+        np.copyto(rgb, sky, where=~geo.ground[..., None])
+        return rgb
+
+    def _vehicle_items(self, pose, T_vehicle_camera, vehicles):
+        """(image hull int32, vehicle, corner pixels) of other vehicles, far to near; vehicles
+        partly behind the camera are skipped."""
+        cam = CameraModel(self.camera.width, self.camera.height, self.camera.K, self.camera.dist,
+                          T_vehicle_camera)
+        out = []
+        for v in sorted(vehicles, key=lambda v: -_ego_dist(v, pose)):
+            corners = _box_corners(v, pose)
+            uv, front = cam.project_vehicle_points(corners)
+            if not front.all() or np.abs(uv).max() > 1e5:
+                continue
+            hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
+            out.append((np.round(hull).astype(np.int32), v, uv))
+        return out
+
+    def _vehicles(self, rgb, lab, pose, T_vehicle_camera, vehicles):
+        """Other vehicles as boxes: the two faces nearest the camera with glass and bumper bands;
+        their pixels get label 0."""
+        cam_pos = T_vehicle_camera[:3, 3]
+        for hull, v, uv in self._vehicle_items(pose, T_vehicle_camera, vehicles):
+            body = np.array(v.color, np.float32) * self.look.gain
+            cv2.fillPoly(rgb, [hull], (body * 0.8).tolist())
+            corners = _box_corners(v, pose)
+            faces = [(i, (i + 1) % 4) for i in range(4)]
+            dist = [np.linalg.norm((corners[i] + corners[j]) / 2 - cam_pos) for i, j in faces]
+            for k in np.argsort(dist)[1::-1]:  # the two nearest faces, farther first
+                i, j = faces[k]
+                shade = 0.75 + 0.25 * k % 2
+                for lo, hi, col in ((0.0, 1.0, body * shade), (0.62, 0.95, body * 0.2 + 25),
+                                    (0.05, 0.25, body * 0.25 + 10)):
+                    quad = _band(uv, i, j, lo, hi)
+                    cv2.fillPoly(rgb, [np.round(quad).astype(np.int32)], col.tolist())
+            cv2.fillPoly(lab, [hull], 0)
+        return rgb
+
+    def _sensor(self, rgb):
+        """Vignetting, optional blur, pixel noise, 8-bit."""
+        rgb *= self.vignette
+        if self.rng.random() < self.look.blur_prob:
+            rgb = cv2.GaussianBlur(rgb, (0, 0), float(self.rng.uniform(0.6, 1.6)))
+        rgb += self.noise[int(self.rng.integers(len(self.noise)))]
+        return np.clip(rgb, 0, 255, out=rgb).astype(np.uint8)
+
+
+def _ego_dist(v: Vehicle, pose) -> float:
+    if v.relative:
+        return math.hypot(v.x, v.y)
+    return math.hypot(v.x - pose[0], v.y - pose[1])
+
+
+def _band(uv: np.ndarray, i: int, j: int, lo: float, hi: float) -> np.ndarray:
+    """Image quad of a horizontal band (fractions lo..hi of the height) of the face i-j."""
+    bi, bj, ti, tj = uv[i], uv[j], uv[i + 4], uv[j + 4]
+    return np.stack([bi + lo * (ti - bi), bj + lo * (tj - bj), bj + hi * (tj - bj), bi + hi * (ti - bi)])
+
+
+def _box_corners(v: Vehicle, pose) -> np.ndarray:
+    """8 corners (bottom 4, then top 4) of a vehicle box in the ego vehicle frame."""
+    l, w = v.length / 2, v.width / 2
+    base = np.array([[l, w], [l, -w], [-l, -w], [-l, w]])
+    c, s = math.cos(v.yaw), math.sin(v.yaw)
+    pts = base @ np.array([[c, s], [-s, c]]) + [v.x, v.y]
+    if not v.relative:
+        dx, dy = pts[:, 0] - pose[0], pts[:, 1] - pose[1]
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        pts = np.stack([c * dx + s * dy, -s * dx + c * dy], axis=1)
+    bottom = np.concatenate([pts, np.zeros((4, 1))], axis=1)
+    top = np.concatenate([pts, np.full((4, 1), v.height)], axis=1)
+    return np.concatenate([bottom, top])

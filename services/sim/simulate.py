@@ -1,0 +1,178 @@
+"""Drive simulation with ground truth: vehicles drive a world's routes and write drive logs
+(common/drivelog.py) with true poses, true label images, optionally rendered RGB frames,
+wheel odometry, gyro and GNSS of the mapping or production noise profile (DESIGN.md)."""
+
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from common.camera import CameraModel, camera_from_config
+from common.config import CameraConfig
+from common.drivelog import DriveLogMeta, DriveLogWriter
+from common.errors import WorldError
+from common.world import World
+from services.sim import motion, sensors
+from services.sim.render import FrameRenderer, Vehicle
+
+logger = logging.getLogger(__name__)
+
+FRAME_HZ = 10.0
+TRUTH_HZ = 100.0
+BASE_TIME_S = 1_600_000_000
+NS = sensors.NS
+PREFIX = {"mapping": "map", "production": "prod"}
+
+
+@dataclass
+class DriveSummary:
+    path: Path
+    km: float
+    frames: int
+    gnss_outage_s: float
+
+
+def simulate_drives(world: World, out_dir, *, vehicles: int = 1, drives: int = 1,
+                    profile: str = "mapping", seed: int = 0, images: bool = True,
+                    max_km: float | None = None, route=None, camera: CameraModel | None = None,
+                    progress=None) -> list[Path]:
+    """Write one drive log per (vehicle, drive) into out_dir/<vehicle>-d<drive>/.
+
+    Vehicles of a world share its first route (other lanes of the same roads where the world has
+    them), so their maps overlap; `route` (index or (N, 2) polyline) overrides it. Each drive
+    differs in lane offset, speeds, sensor noise and looks. `progress(done, total)` is called
+    per frame."""
+    if profile not in sensors.PROFILES:
+        raise WorldError(f"unknown profile {profile!r} (mapping | production)")
+    camera = camera or camera_from_config(CameraConfig())
+    out_dir = Path(out_dir)
+    paths = []
+    for d in range(drives):
+        for v in range(vehicles):
+            vehicle = f"{PREFIX[profile]}-{v}"
+            slot = d * vehicles + v
+            drive_seed = np.random.SeedSequence([seed, v, d, 0 if profile == "mapping" else 1])
+            summary = simulate_drive(
+                world, out_dir / f"{vehicle}-d{d}", vehicle=vehicle, traversal=f"{vehicle}-d{d}-s{seed}",
+                profile=sensors.PROFILES[profile], route=_route_for(world, v, route), camera=camera,
+                rng=np.random.default_rng(drive_seed), images=images, max_km=max_km,
+                t0_s=BASE_TIME_S + seed * 1_000_000 + slot * 3600, progress=progress,
+            )
+            paths.append(summary.path)
+    return paths
+
+
+def _route_for(world: World, vehicle: int, route) -> np.ndarray:
+    """The route of a vehicle: explicit, or the first route and its parallel-lane variants."""
+    if route is not None and not isinstance(route, (int, np.integer)):
+        return np.asarray(route, float)
+    if not world.routes:
+        raise WorldError(f"world {world.name} has no routes")
+    if route is not None:
+        return world.routes[int(route) % len(world.routes)]
+    first = world.routes[0]
+    variants = [r for r in world.routes if np.linalg.norm(r[0] - first[0]) < 8.0
+                and np.linalg.norm(r[min(40, len(r) - 1)] - first[min(40, len(first) - 1)]) < 8.0]
+    return variants[vehicle % len(variants)]
+
+
+def simulate_drive(world: World, root: Path, *, vehicle: str, traversal: str,
+                   profile: sensors.NoiseProfile, route: np.ndarray, camera: CameraModel, rng,
+                   images: bool, max_km: float | None, t0_s: int, progress=None) -> DriveSummary:
+    """One drive: motion, sensors, camera errors, then frame by frame labels (and images)."""
+    # 1. true motion along the route, with this drive's lane offset
+    traj = motion.drive(route, rng, max_len_m=None if max_km is None else max_km * 1000.0,
+                        offset_m=float(np.clip(rng.normal(0.0, 0.25), -0.5, 0.5)), rate_hz=TRUTH_HZ)
+    t_frame = np.arange(0.0, traj.duration_s, 1.0 / FRAME_HZ)
+    poses = traj.poses(t_frame)
+    # 2. sensors at their own rates
+    t_odom, v_odom, scale = sensors.odometry(traj, profile, rng)
+    t_imu, w_imu, bias = sensors.gyro(traj, profile, rng)
+    t_gnss, xy_gnss, sig_gnss, ok_gnss = sensors.gnss(traj, profile, world, rng)
+    # 3. the camera: the logged calibration is off by the calibration error; frames vibrate
+    calib = sensors.calibration_error(profile, rng)
+    cam_true = camera.perturbed(*calib)
+    shake = sensors.vibration(len(t_frame), profile, rng)
+    others = _other_vehicles(traj, rng)
+    # 4. frames
+    renderer = FrameRenderer(world, cam_true, seed=int(rng.integers(2**31)))
+    meta = DriveLogMeta(
+        vehicle=vehicle, traversal=traversal, profile=profile.name,
+        world={"name": world.name, "origin_lat": world.origin_latlon[0],
+               "origin_lon": world.origin_latlon[1]},
+        camera=camera,
+        notes={"source": "roadmap sim", "odom_scale": scale, "gyro_bias_rps": bias,
+               "calibration_error_rad": [float(c) for c in calib],
+               "vibration_deg": profile.vibration_deg, "images": images},
+    )
+    writer = DriveLogWriter(root, meta)
+    for i, (t, pose) in enumerate(zip(t_frame, poses)):
+        T = cam_true.perturbed(d_pitch_rad=shake[i, 0], d_roll_rad=shake[i, 1]).T_vehicle_camera
+        visible = others(t)
+        if images:
+            rgb, lab = renderer.render(pose, T, float(t), visible)
+        else:
+            rgb, lab = None, renderer.labels(pose, T, visible)
+        writer.write_frame(i, rgb, lab)
+        if progress:
+            progress(i + 1, len(t_frame))
+    # 5. streams and meta (log.json last marks the log complete)
+    t_truth = np.arange(0.0, traj.duration_s, 1.0 / TRUTH_HZ)
+    ns = lambda t: (np.round(np.asarray(t) * NS) + t0_s * NS).astype(np.int64)  # noqa: E731
+    writer.close({
+        "frame_t_ns": ns(t_frame), "frame_pose_true": poses,
+        "odom_t_ns": ns(t_odom), "odom_speed_mps": v_odom,
+        "imu_t_ns": ns(t_imu), "imu_yaw_rate_rps": w_imu,
+        "gnss_t_ns": ns(t_gnss), "gnss_xy_m": xy_gnss, "gnss_sigma_m": sig_gnss,
+        "gnss_ok": ok_gnss,
+        "truth_t_ns": ns(t_truth), "truth_pose": traj.poses(t_truth),
+    })
+    km = float(np.sum(np.linalg.norm(np.diff(traj.xy, axis=0), axis=1))) / 1000.0
+    outage = float((~ok_gnss).sum()) / profile.gnss_hz
+    logger.info("%s: %.2f km, %d frames, GNSS outage %.0f s", root.name, km, len(t_frame), outage)
+    return DriveSummary(root, km, len(t_frame), outage)
+
+
+def _other_vehicles(traj: motion.Trajectory, rng):
+    """Parked cars along the right side of the driven path and an intermittent lead car.
+
+    Returns f(t) -> list of Vehicle visible around time t."""
+    parked = []
+    step = 10.0
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(traj.xy, axis=0), axis=1))])
+    for at in np.arange(20.0, s[-1], step):
+        if rng.random() < 0.12:
+            k = int(np.searchsorted(s, at))
+            x, y = traj.xy[min(k, len(s) - 1)]
+            yaw = traj.yaw[min(k, len(s) - 1)]
+            side = rng.uniform(2.9, 3.6)
+            parked.append(Vehicle(x + math.sin(yaw) * side, y - math.cos(yaw) * side, yaw,
+                                  rng.uniform(3.8, 4.8), rng.uniform(1.7, 1.9), rng.uniform(1.4, 1.7),
+                                  _car_colour(rng)))
+    xy_parked = np.array([[p.x, p.y] for p in parked]).reshape(-1, 2)
+    lead_on = rng.random(int(traj.duration_s / 10.0) + 2) < 0.35  # lead car present per 10 s
+    lead_gap = rng.uniform(9.0, 30.0, len(lead_on))
+    lead_col = _car_colour(rng)
+
+    def visible(t: float) -> list:
+        x, y = np.interp(t, traj.t_s, traj.xy[:, 0]), np.interp(t, traj.t_s, traj.xy[:, 1])
+        out = [parked[i] for i in np.flatnonzero(np.hypot(xy_parked[:, 0] - x,
+                                                          xy_parked[:, 1] - y) < 60.0)]
+        k = int(t / 10.0)
+        if lead_on[k]:
+            gap = lead_gap[k] + 3.0 * math.sin(0.5 * t)
+            out.append(Vehicle(gap, 0.0, 0.0, 4.4, 1.8, 1.5, lead_col, relative=True))
+        return out
+
+    return visible
+
+
+CAR_COLOURS = ((235, 235, 235), (25, 25, 28), (160, 162, 165), (95, 98, 102), (30, 45, 95),
+               (150, 25, 25), (200, 200, 190), (60, 70, 60))
+
+
+def _car_colour(rng) -> tuple:
+    base = np.array(CAR_COLOURS[int(rng.integers(len(CAR_COLOURS)))], float)
+    return tuple(np.clip(base * rng.uniform(0.85, 1.1), 0, 255))
