@@ -92,6 +92,16 @@ class _TileState:
 class MergerShard:
     """Exactly-once vote merging for the tiles this shard owns (see the module docstring)."""
 
+    @classmethod
+    def from_config(cls, merger_cfg, owns: Callable[[TileId], bool]) -> "MergerShard":
+        return cls(
+            owns=owns,
+            window_traversals=merger_cfg.window_traversals,
+            min_votes=merger_cfg.min_votes,
+            max_batch_patches=merger_cfg.max_batch_patches,
+            max_batch_cells=merger_cfg.max_batch_cells,
+        )
+
     def __init__(
         self,
         *,
@@ -99,11 +109,13 @@ class MergerShard:
         window_traversals: int = WINDOW_TRAVERSALS,
         min_votes: int = MIN_VOTES,
         max_batch_patches: int = 4096,
+        max_batch_cells: int = 4_000_000,
     ):
         self.owns = owns
         self.window = int(window_traversals)
         self.min_votes = int(min_votes)
         self.max_batch_patches = int(max_batch_patches)
+        self.max_batch_cells = int(max_batch_cells)
         self.seen: set[str] = set()
         self.tiles_state: dict[TileId, _TileState] = {}
         self.counters = {"patches_applied": 0, "duplicates": 0, "cell_votes": 0}
@@ -115,6 +127,9 @@ class MergerShard:
         occurrence of each unseen id). Raises TileError for anything the shard must refuse."""
         if len(patches) > self.max_batch_patches:
             raise TileError(f"batch of {len(patches)} patches exceeds {self.max_batch_patches}")
+        n_cells = sum(len(p.cells) for p in patches)
+        if n_cells > self.max_batch_cells:
+            raise TileError(f"batch of {n_cells} cells exceeds {self.max_batch_cells}")
         new, ids = [], set()
         for p in patches:
             _check_patch(p)

@@ -1,0 +1,181 @@
+"""`roadmap merger --shard I --shards N [--store PATH]`: one tile merger shard on Zenoh.
+
+Ingest (`roadmap/ingest/s<I>`, complete): a FifoChannel drained by the main loop, which applies
+each batch durably (DurableShard) and then replies with the IngestAck. Tiles
+(`roadmap/tile/<tx>/<ty>`, one complete queryable per held tile) and stats
+(`roadmap/stats/merger/s<I>`) are enqueued by cheap RX-thread callbacks and answered by a serve
+thread from the cached compressed tiles. Changed tiles are recompressed at most every
+`merger.debounce_s` and published on `roadmap/tile-update/<tx>/<ty>`. Liveliness token
+`roadmap/alive/merger/s<I>` once recovery is done. Runs until SIGTERM/SIGINT."""
+
+import logging
+import queue
+import threading
+import time
+
+from common import codec, keys
+from common.bus import Callback, FifoChannel, ZError, open_session, stop_event
+from common.config import RoadmapConfig
+from common.contours import CODEC
+from common.errors import CodecError, ConfigError
+from common.grid import owner_of_tile
+from common.messages import IngestAck, Tile
+from services.merger.durable import DurableShard
+from services.merger.shard import MergerShard, TileCodecCache
+from services.merger.store import ShardStore
+
+logger = logging.getLogger(__name__)
+
+IDLE_WAIT_S = 0.005
+
+
+def get_durable_shard(shard: int, shards: int, store_path: str, cfg: RoadmapConfig) -> DurableShard:
+    """Build the shard core + store for shard `shard` of `shards` and replay the store."""
+    if not 0 <= shard < shards:
+        raise ConfigError(f"--shard must be in [0, {shards}), got {shard}")
+    shard_map = cfg.grid.shard_map if cfg.grid.shards == shards else {}
+
+    def owns(tile) -> bool:
+        return owner_of_tile(tile, shards, shard_map) == shard
+
+    store = ShardStore(store_path, synchronous=cfg.merger.sqlite_synchronous)
+    stored = store.check_meta("shard", f"{shard}/{shards}")
+    if stored != f"{shard}/{shards}":
+        store.close()
+        raise ConfigError(f"store {store_path} belongs to shard {stored}, not {shard}/{shards}")
+    durable = DurableShard(MergerShard.from_config(cfg.merger, owns), store, ident=f"s{shard}",
+                           cache=TileCodecCache())
+    n = durable.recover()
+    logger.info("shard %d/%d: recovered %d patches, %d tiles from %s",
+                shard, shards, n, len(durable.tiles()), store_path)
+    return durable
+
+
+class MergerNode:
+    def __init__(self, session, durable: DurableShard, *, shard: int, debounce_s: float,
+                 ingest_queue: int = 256):
+        self.session = session
+        self.durable = durable
+        self.shard = shard
+        self.debounce_s = debounce_s
+        self.serve_queue: queue.Queue = queue.Queue()
+        self.tile_queryables = {}
+        self.ingest = session.declare_queryable(keys.ingest(shard), FifoChannel(ingest_queue),
+                                                complete=True)
+        self.stats_q = session.declare_queryable(keys.stats("merger", f"s{shard}"),
+                                                 self._enqueue_callback(), complete=True)
+        for tile in durable.tiles():
+            self._declare_tile(tile)
+        self.token = session.liveliness().declare_token(keys.alive("merger", f"s{shard}"))
+        self.serving = threading.Thread(target=self._serve_loop, name="merger-serve", daemon=True)
+        self._stop = threading.Event()
+
+    def _enqueue_callback(self):
+        return Callback(self.serve_queue.put, indirect=False)
+
+    def _declare_tile(self, tile) -> None:
+        if tile not in self.tile_queryables:
+            self.tile_queryables[tile] = self.session.declare_queryable(
+                keys.tile(*tile), self._enqueue_callback(), complete=True)
+
+    # -- main loop: ingest + debounced flush ---------------------------------------------------
+
+    def run(self, stop: threading.Event) -> None:
+        self.serving.start()
+        last_flush = time.monotonic()
+        try:
+            while not stop.is_set():
+                query = self.ingest.try_recv()
+                if query is not None:
+                    self._handle_ingest(query)
+                else:
+                    stop.wait(IDLE_WAIT_S)
+                if time.monotonic() - last_flush >= self.debounce_s:
+                    self._flush_and_publish()
+                    last_flush = time.monotonic()
+            self._flush_and_publish()
+        finally:
+            self._stop.set()
+            self.serving.join(timeout=2.0)
+            self._undeclare()
+
+    def _handle_ingest(self, query) -> None:
+        with query:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            try:
+                ack = self.durable.ingest(payload)
+            except Exception as exc:  # e.g. the store failed: no ack, the vehicle retries
+                logger.exception("ingest failed")
+                ack = IngestAck(error=f"shard failed to store the batch: {exc}")
+            query.reply(query.key_expr, codec.encode(ack))
+
+    def _flush_and_publish(self) -> None:
+        self.durable.flush()
+        for tile in self.durable.take_changed():
+            self._declare_tile(tile.tile)
+            self.session.put(keys.tile_update(*tile.tile), codec.encode(tile))
+
+    def _undeclare(self) -> None:
+        for entity in [self.token, self.ingest, self.stats_q, *self.tile_queryables.values()]:
+            try:
+                entity.undeclare()
+            except ZError as exc:  # the session may already be closing
+                logger.debug("undeclare: %s", exc)
+
+    # -- serve thread: tiles and stats ---------------------------------------------------------
+
+    def _serve_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                query = self.serve_queue.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            with query:
+                try:
+                    self._serve(query)
+                except Exception as exc:  # a bad query must never end the serve thread
+                    logger.warning("query %s failed: %s", query.selector, exc)
+                    query.reply_err(str(exc).encode())
+
+    def _serve(self, query) -> None:
+        key = str(query.key_expr)
+        if key == keys.stats("merger", f"s{self.shard}"):
+            query.reply(key, codec.encode(self.durable.stats()))
+            return
+        tile = keys.parse_tile(key)
+        since, want = _tile_selector(query.parameters)
+        msg: Tile | None = (self.durable.raw_tile(tile) if want == "raw"
+                            else self.durable.tile(tile))
+        if msg is None:
+            query.reply_del(key)
+        elif since is None or msg.version > since:
+            query.reply(key, codec.encode(msg))
+
+
+def _tile_selector(parameters) -> tuple[int | None, str]:
+    """`?since=<v>` and `?codec=raw|contour` -> (since, codec); CodecError on anything else."""
+    since_text = parameters.get("since")
+    want = parameters.get("codec") or "contour"
+    try:
+        since = int(since_text) if since_text not in (None, "") else None
+    except ValueError as exc:
+        raise CodecError(f"since must be an integer version, got {since_text!r}") from exc
+    if want not in ("raw", "contour", CODEC):
+        raise CodecError(f"codec must be raw or contour, got {want!r}")
+    return since, "raw" if want == "raw" else "contour"
+
+
+def main(args, cfg: RoadmapConfig) -> int:
+    stop = stop_event()
+    store_path = args.store or f"merger-s{args.shard}.sqlite"
+    durable = get_durable_shard(args.shard, args.shards, store_path, cfg)
+    try:
+        with open_session(cfg.bus) as session:
+            node = MergerNode(session, durable, shard=args.shard,
+                              debounce_s=cfg.merger.debounce_s,
+                              ingest_queue=cfg.merger.ingest_queue)
+            logger.info("merger s%d/%d serving", args.shard, args.shards)
+            node.run(stop)
+    finally:
+        durable.store.close()
+    return 0

@@ -1,0 +1,106 @@
+"""The shard's durable store: SQLite in WAL mode, one file per shard (DESIGN.md: Delivery).
+
+Holds every applied patch (id, tile, traversal, times, cells, votes) and each tile's compressed
+form with its version. A batch's new patches are written in ONE transaction, committed (fsync'd
+with synchronous=FULL) before the shard acks; on restart the shard replays the stored patches."""
+
+import logging
+import sqlite3
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from common.classes import NUM_CLASSES
+from common.messages import GridPatch
+
+logger = logging.getLogger(__name__)
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS patches (
+    patch_id TEXT PRIMARY KEY, tx INTEGER NOT NULL, ty INTEGER NOT NULL,
+    vehicle TEXT NOT NULL, traversal TEXT NOT NULL,
+    t_first_ns INTEGER NOT NULL, t_last_ns INTEGER NOT NULL,
+    cells BLOB NOT NULL, votes BLOB NOT NULL
+);
+CREATE TABLE IF NOT EXISTS tiles (
+    tx INTEGER NOT NULL, ty INTEGER NOT NULL, version INTEGER NOT NULL,
+    codec TEXT NOT NULL, data BLOB NOT NULL, PRIMARY KEY (tx, ty)
+);
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+"""
+
+
+class ShardStore:
+    """One SQLite file; not shared between threads without the caller's lock."""
+
+    def __init__(self, path: str | Path, *, synchronous: str = "FULL"):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.db = sqlite3.connect(str(self.path), isolation_level=None, check_same_thread=False)
+        self.db.execute("PRAGMA journal_mode=WAL")
+        self.db.execute(f"PRAGMA synchronous={synchronous}")
+        self.db.executescript(SCHEMA)
+
+    def close(self) -> None:
+        self.db.close()
+
+    def check_meta(self, key: str, value: str) -> str | None:
+        """Record a setting on first use; return the stored value (differs on a mismatch)."""
+        row = self.db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        if row is None:
+            self.db.execute("INSERT INTO meta (key, value) VALUES (?, ?)", (key, value))
+            return value
+        return row[0]
+
+    def save_patches(self, patches: list[GridPatch]) -> None:
+        """All of them in one committed transaction, or none (raises sqlite3.Error)."""
+        rows = [
+            (
+                p.patch_id, int(p.tile[0]), int(p.tile[1]), p.vehicle, p.traversal,
+                int(p.t_first_ns), int(p.t_last_ns),
+                np.asarray(p.cells, dtype="<u4").tobytes(),
+                np.asarray(p.votes, dtype="<u2").tobytes(),
+            )
+            for p in patches
+        ]
+        with self._transaction():
+            self.db.executemany("INSERT OR IGNORE INTO patches VALUES (?,?,?,?,?,?,?,?,?)", rows)
+
+    def load_patches(self) -> Iterator[GridPatch]:
+        cur = self.db.execute("SELECT * FROM patches ORDER BY rowid")
+        for pid, tx, ty, vehicle, trav, t0, t1, cells, votes in cur:
+            c = np.frombuffer(cells, dtype="<u4")
+            yield GridPatch(
+                patch_id=pid, vehicle=vehicle, tile=(tx, ty), cells=c,
+                votes=np.frombuffer(votes, dtype="<u2").reshape(len(c), NUM_CLASSES),
+                t_first_ns=t0, t_last_ns=t1, traversal=trav,
+            )
+
+    def count_patches(self) -> int:
+        return int(self.db.execute("SELECT COUNT(*) FROM patches").fetchone()[0])
+
+    def save_tiles(self, tiles: list[tuple[tuple[int, int], int, str, bytes]]) -> None:
+        """[(tile, version, codec, data)] in one transaction."""
+        rows = [(t[0], t[1], v, codec, data) for t, v, codec, data in tiles]
+        with self._transaction():
+            self.db.executemany("INSERT OR REPLACE INTO tiles VALUES (?,?,?,?,?)", rows)
+
+    def load_tiles(self) -> list[tuple[tuple[int, int], int, str, bytes]]:
+        cur = self.db.execute("SELECT tx, ty, version, codec, data FROM tiles ORDER BY tx, ty")
+        return [((tx, ty), v, codec, bytes(data)) for tx, ty, v, codec, data in cur]
+
+    def _transaction(self):
+        return _Transaction(self.db)
+
+
+class _Transaction:
+    def __init__(self, db: sqlite3.Connection):
+        self.db = db
+
+    def __enter__(self):
+        self.db.execute("BEGIN IMMEDIATE")
+
+    def __exit__(self, exc_type, exc, tb):
+        self.db.execute("COMMIT" if exc_type is None else "ROLLBACK")
+        return False
