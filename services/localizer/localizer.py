@@ -35,12 +35,15 @@ class Localizer:
                  max_points: int = 700, road_fraction: float = 0.25, gnss_inflate: float = 1.5,
                  gnss_min_sigma_m: float = 1.0, init_travel_m: float = 12.0, init_frames: int = 30,
                  init_min_overlap: float = 0.5, init_sigma_m: float = 0.3,
+                 init_min_frames: int = 8, init_every: int = 4, init_margin: float = 0.05,
                  reinit_bad_frames: int = 30, seed: int = 0):
         self.cache, self.icp, self.ekf, self.search = cache, icp, ekf, search
         self.max_points, self.road_fraction = max_points, road_fraction
         self.gnss_inflate, self.gnss_min_sigma_m = gnss_inflate, gnss_min_sigma_m
         self.init_travel_m, self.init_frames = init_travel_m, init_frames
         self.init_min_overlap, self.init_sigma_m = init_min_overlap, init_sigma_m
+        self.init_min_frames, self.init_every = init_min_frames, init_every
+        self.init_margin = init_margin
         self.reinit_bad_frames = reinit_bad_frames
         self._rng = np.random.default_rng(seed)
         self.t_ns: int | None = None
@@ -50,6 +53,7 @@ class Localizer:
         self.gnss: deque = deque(maxlen=50)  # (odom pose, xy, sigma)
         self.bad_frames = 0
         self.inits = 0
+        self.waiting_frames = 0
 
     # -- verbs ------------------------------------------------------------------------------
 
@@ -101,31 +105,39 @@ class Localizer:
         return pts[idx], cls[idx], None if jac is None else np.asarray(jac, float)[idx]
 
     def _try_initialize(self) -> dict:
-        """Coarse search + ICP refine on the submap of the last frames, once enough is seen."""
-        if not self.gnss or (self.travel_m < self.init_travel_m
-                             and len(self.submap) < self.submap.maxlen):
+        """Coarse search + ICP refine on the submap of the last frames.
+
+        Tried every `init_every` frames once `init_min_frames` are buffered; an ambiguous answer
+        (a distinct runner-up almost as good, e.g. the next lane) waits for more frames unless
+        the buffer is full or enough distance was travelled."""
+        n = len(self.submap)
+        self.waiting_frames += 1
+        if not self.gnss or n < self.init_min_frames or self.waiting_frames % self.init_every:
             return {"state": "waiting"}
         pts, cls = self._submap_points()
         centre_of_yaw, heading = self._gnss_prior()
-        best = None
+        ranked = []
         for cand in self.search.search(pts, cls, centre_of_yaw, heading, self.cache):
             res = self.icp.register(pts, class_slots(cls), cand.pose, self.cache)
-            if res is None:
-                continue
-            overlap = fine_overlap(pts, class_slots(cls), res.pose, self.cache)
-            if best is None or overlap > best[0]:
-                best = (overlap, res)
-        if best is None or best[0] < self.init_min_overlap:
-            return {"state": "init_failed", "overlap": None if best is None else best[0]}
+            if res is not None:
+                ranked.append((fine_overlap(pts, class_slots(cls), res.pose, self.cache), res))
+        ranked.sort(key=lambda r: -r[0])
+        if not ranked or ranked[0][0] < self.init_min_overlap:
+            return {"state": "init_failed", "overlap": ranked[0][0] if ranked else None}
+        best, runner = ranked[0], _runner_up(ranked)
+        final = n >= self.submap.maxlen or self.travel_m >= self.init_travel_m
+        if runner is not None and runner[0] > best[0] - self.init_margin and not final:
+            return {"state": "init_ambiguous", "overlap": best[0], "runner_up": runner[0]}
         self._start_filter(best[1])
-        return {"state": "initialized", "overlap": best[0]}
+        return {"state": "initialized", "overlap": best[0],
+                "runner_up": None if runner is None else runner[0]}
 
     def _start_filter(self, res: IcpResult) -> None:
         cov = res.cov.copy()
         cov[:2, :2] += np.eye(2) * self.init_sigma_m**2
         cov[2, 2] += math.radians(1.0) ** 2
         self.ekf.reset(res.pose, cov)
-        self.bad_frames = 0
+        self.bad_frames = self.waiting_frames = 0
         self.inits += 1
         logger.info("initialized at %s (init #%d)", np.round(res.pose, 2), self.inits)
 
@@ -178,6 +190,16 @@ class Localizer:
             self.ekf.initialized = False
             self.submap.clear()
             self.travel_m = 0.0
+
+
+def _runner_up(ranked):
+    """Best candidate more than 1 m or 3 deg away from the winner (None if there is none)."""
+    best = ranked[0][1].pose
+    for overlap, res in ranked[1:]:
+        d = res.pose - best
+        if np.hypot(d[0], d[1]) > 1.0 or abs(math.remainder(d[2], 2 * math.pi)) > math.radians(3):
+            return overlap, res
+    return None
 
 
 def _motion(v: float, w: float, dt: float) -> np.ndarray:
