@@ -82,7 +82,7 @@ def _sim_towns(seed, input_size, budget_s, max_frames):
             for _ in range(6):
                 pose = random_pose(world, rng)
                 rgb, lab = renderer.render(pose, camera.T_vehicle_camera,
-                                           float(rng.uniform(0, 600)), _random_cars(pose, rng))
+                                           float(rng.uniform(0, 600)), random_cars(pose, rng))
                 frames.append(resize_image(rgb, input_size))
                 labels.append(resize_labels(lab, input_size))
         logger.info("sim town %d: %d frames, %.0f s", k, len(frames), time.perf_counter() - t0)
@@ -90,7 +90,7 @@ def _sim_towns(seed, input_size, budget_s, max_frames):
     return np.stack(frames[:max_frames]), np.stack(labels[:max_frames])
 
 
-def _random_cars(pose, rng) -> list:
+def random_cars(pose, rng) -> list:
     """A lead car (sometimes) and parked cars at the right (sometimes), as the simulator does."""
     from services.sim.render import Vehicle
 

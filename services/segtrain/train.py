@@ -42,6 +42,7 @@ def train_command(args, cfg) -> int:
     result["render_s"] = round(render_s, 1)
     result["total_s"] = round(time.perf_counter() - t_start, 1)
     (out / "train_log.json").write_text(json.dumps(result, indent=2))
+    (out / "MODEL_CARD.md").write_text(model_card(result))
     logger.info("trained in %.1f min: %s", result["total_s"] / 60.0, result)
     return 0
 
@@ -211,3 +212,35 @@ def verify_onnx(model, path: Path, x_u8) -> tuple[float, float]:
         raise RuntimeError(f"ONNX export differs from torch: max diff {max_diff}, "
                            f"argmax agreement {agreement}")
     return max_diff, agreement
+
+
+def model_card(result: dict) -> str:
+    w, h = INPUT_SIZE
+    return f"""# roadseg.onnx: road-marking segmentation (RoadMap)
+
+- **Classes** (output channel = our class id, DESIGN.md): 0 none/unknown, 1 road surface,
+  2 lane line, 3 stop line, 4 crosswalk, 5 ground sign (arrows, text).
+- **Input** `image`: float32 [1, 3, {h}, {w}] (N, C, H, W), RGB, value = pixel / 255
+  (no mean/std: mean 0, std 1). Frames are resized to {w}x{h} with cv2.INTER_AREA.
+- **Output** `logits`: float32 [1, 6, {h}, {w}]; class = argmax over axis 1. OnnxSegmenter
+  resizes the labels back to the frame size (nearest). The same settings are stored in the
+  model's metadata (`roadmap.segmentation`), so `OnnxSegmenter()` needs no arguments.
+- **Network**: RoadSegNet (services/segtrain/net.py), depthwise-separable encoder-decoder,
+  3 stride-2 stages, dilated context at 1/8, U-Net skips to a full-input-resolution branch;
+  {result["params"]} parameters, {result["model_bytes"] / 1024:.0f} KiB, ONNX opset 17.
+- **Training data**: only seeded procedural towns (services/sim/town.py), never the Karlsruhe or
+  Argoverse 2 benchmark worlds: {result["frames"]} frames rendered by the simulator's renderer
+  (services/sim/render.py: random looks, worn paint, shadows, haze, skyline, other cars) and by
+  services/segtrain/synth.py (more materials), at random route poses (half facing stop lines,
+  crosswalks or signs), with camera height 1.25-1.75 m, pitch 1.5-7 deg, roll/yaw jitter,
+  focal length +-15 %, principal point and distortion jitter. Training-time augmentation:
+  brightness, contrast, colour cast, gamma, blur, noise, horizontal flips, random crops.
+- **Training**: `roadmap train-seg --out DIR --seed {result["seed"]} --minutes 45`
+  (`pip install .[train]`), AdamW, cosine schedule, class-weighted cross-entropy
+  (weights {result["class_weights"]}), 2 CPU threads; {result["steps"]} steps in
+  {result["train_s"] / 60:.1f} min after {result.get("render_s", 0) / 60:.1f} min of rendering.
+  The export is checked against torch with onnxruntime (max |diff| {result["onnx_max_abs_diff"]:.1e},
+  argmax agreement {result["onnx_argmax_agreement"]:.4f}).
+- **Validation** (held-out procedural-town frames, model input size): {result["val_iou_town"]}.
+- **Held-out benchmark worlds**: see the metrics section below (bench/bench_segmentation.py).
+"""
