@@ -112,11 +112,12 @@ def km_of_centrelines(lanes: list[np.ndarray], *, merge_m: float = 4.5, step_m: 
     return total / 1000.0
 
 
-def blocked_zone_along(route: np.ndarray, *, start_frac: float = 0.35, length_m: float = 300.0,
-                       width_m: float = 40.0, piece_m: float = 25.0) -> list[np.ndarray]:
-    """GNSS-blocked zone: buffers (as short pieces, so curves stay simple) around length_m of route."""
+def blocked_zone_along(route: np.ndarray, *, start_m: float = 250.0, length_m: float = 300.0,
+                       width_m: float = 30.0, piece_m: float = 25.0) -> list[np.ndarray]:
+    """GNSS-blocked zone: buffers (as short pieces, so curves stay simple) around length_m of
+    route from start_m on (drives start with a fix, then lose it)."""
     s = paint.arc_length(route)
-    a = min(start_frac * s[-1], max(s[-1] - length_m, 0.0))
+    a = min(start_m, max(s[-1] - length_m, 0.0))
     b = min(a + length_m, s[-1])
     out = []
     while a < b - 1e-6:

@@ -47,21 +47,26 @@ def simulate_drives(world: World, out_dir, *, vehicles: int = 1, drives: int = 1
     if profile not in sensors.PROFILES:
         raise WorldError(f"unknown profile {profile!r} (mapping | production)")
     camera = camera or camera_from_config(CameraConfig())
-    out_dir = Path(out_dir)
-    paths = []
-    for d in range(drives):
-        for v in range(vehicles):
-            vehicle = f"{PREFIX[profile]}-{v}"
-            slot = d * vehicles + v
-            drive_seed = np.random.SeedSequence([seed, v, d, 0 if profile == "mapping" else 1])
-            summary = simulate_drive(
-                world, out_dir / f"{vehicle}-d{d}", vehicle=vehicle, traversal=f"{vehicle}-d{d}-s{seed}",
-                profile=sensors.PROFILES[profile], route=_route_for(world, v, route), camera=camera,
-                rng=np.random.default_rng(drive_seed), images=images, max_km=max_km,
-                t0_s=BASE_TIME_S + seed * 1_000_000 + slot * 3600, progress=progress,
-            )
-            paths.append(summary.path)
-    return paths
+    return [_drive_one(world, Path(out_dir), v=v, d=d, vehicles=vehicles, profile=profile,
+                       seed=seed, images=images, max_km=max_km, route=route, camera=camera,
+                       progress=progress)
+            for d in range(drives) for v in range(vehicles)]
+
+
+def _drive_one(world, out_dir, *, v, d, vehicles, profile, seed, images, max_km, route, camera,
+               progress) -> Path:
+    """Drive d of vehicle v: its own seed, time slot and log directory."""
+    vehicle = f"{PREFIX[profile]}-{v}"
+    slot = d * vehicles + v
+    drive_seed = np.random.SeedSequence([seed, v, d, 0 if profile == "mapping" else 1])
+    summary = simulate_drive(
+        world, Path(out_dir) / f"{vehicle}-d{d}", vehicle=vehicle,
+        traversal=f"{vehicle}-d{d}-s{seed}", profile=sensors.PROFILES[profile],
+        route=_route_for(world, v, route), camera=camera, rng=np.random.default_rng(drive_seed),
+        images=images, max_km=max_km, t0_s=BASE_TIME_S + seed * 1_000_000 + slot * 3600,
+        progress=progress,
+    )
+    return summary.path
 
 
 def _route_for(world: World, vehicle: int, route) -> np.ndarray:

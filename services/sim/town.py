@@ -11,12 +11,12 @@ import numpy as np
 from common.classes import Cls
 from common.world import Marking, World
 from services.sim import paint
+from services.sim.routes import blocked_zone_along
 
 LANE_W_M = 3.5
 SHOULDER_M = 0.6
 EDGE_LINE_M = 0.15
 SPACING_M = 160.0
-BLOCKED_MIN_M = 300.0
 TEXTS = ("XING", "EXIT", "LEFT")
 
 
@@ -201,19 +201,6 @@ def _lane_route(path, edges, nodes, lane: int) -> np.ndarray:
     return paint.dedupe(np.concatenate(pts))
 
 
-def _blocked_zone(edges, nodes, nx) -> list[np.ndarray]:
-    """Buffers around consecutive roads of the first grid row totalling >= 300 m."""
-    zone, total = [], 0.0
-    row = sorted((e for e in edges if abs(e.b - e.a) == 1 and e.a < nx), key=lambda e: e.a)
-    for e in row + [e for e in edges if e not in row]:
-        d = nodes[e.b] - nodes[e.a]
-        zone.append(paint.strip(np.stack([nodes[e.a] - 0.05 * d, nodes[e.b] + 0.05 * d]), 40.0))
-        total += float(np.linalg.norm(d))
-        if total >= BLOCKED_MIN_M:
-            break
-    return zone
-
-
 def build_town(km: float = 2.0, seed: int = 0) -> World:
     rng = np.random.default_rng(seed)
     nx, ny = _grid_shape(km)
@@ -229,5 +216,5 @@ def build_town(km: float = 2.0, seed: int = 0) -> World:
               _lane_route(path, edges, nodes, 1)]
     km_road = sum(float(np.linalg.norm(nodes[e.b] - nodes[e.a])) for e in edges) / 1000.0
     return World(name=f"town-{km:g}km-s{seed}", markings=markings, routes=routes,
-                 gnss_blocked=_blocked_zone(edges, nodes, nx), km_of_road=km_road,
+                 gnss_blocked=blocked_zone_along(routes[0]), km_of_road=km_road,
                  origin_latlon=(49.0, 8.4))
