@@ -103,7 +103,8 @@ class OnnxSegmenter(Segmenter):
     ((rgb * scale - mean) / std, NCHW float32), run, argmax every head over its class axis, map
     each head's classes to ours (`head_map`: output name -> {model class -> our class}; heads are
     applied in `priority` order, later heads painting over earlier ones, class 0 never paints),
-    and resize the labels back to the image size (nearest). Missing settings are read from the
+    and resize the labels back to the image size (nearest; or `upsample="bilinear"`: the logits
+    are resized before the argmax, smoother but slower). Missing settings are read from the
     model's own metadata (key `roadmap.segmentation`) or its input shape."""
 
     def __init__(
@@ -117,6 +118,7 @@ class OnnxSegmenter(Segmenter):
         head_map: dict[str, dict[int, int]] | None = None,
         priority: list[str] | None = None,
         intra_op_threads: int = 1,
+        upsample: str = "nearest",
         name: str | None = None,
     ):
         import onnxruntime as ort
@@ -140,6 +142,9 @@ class OnnxSegmenter(Segmenter):
                               np.float32)
         self.head_map, self.priority = self._heads(head_map, priority)
         self.name = name or meta.get("name", path.stem)
+        if upsample not in ("nearest", "bilinear"):
+            raise ConfigError(f"upsample must be 'nearest' or 'bilinear', got {upsample!r}")
+        self.upsample = upsample
 
     def _heads(self, head_map, priority):
         outputs = self._session.get_outputs()
@@ -167,12 +172,18 @@ class OnnxSegmenter(Segmenter):
         x = (img.astype(np.float32) * self.scale - self.mean) / self.std
         return np.ascontiguousarray(x.transpose(2, 0, 1)[None])
 
-    def segment_model_size(self, image_rgb: np.ndarray) -> np.ndarray:
-        """Labels (h, w) uint8 at the model's input size (no resize back)."""
+    def segment_model_size(self, image_rgb: np.ndarray, out_size=None) -> np.ndarray:
+        """Labels (h, w) uint8 at the model's input size, or at out_size (W, H) when the logits
+        are upsampled bilinearly before the argmax (smoother class boundaries)."""
         outs = self._session.run(self.priority, {self._input_name: self.preprocess(image_rgb)})
         labels = None
         for head, logits in zip(self.priority, outs):
-            arg = np.argmax(logits[0], axis=0)
+            scores = logits[0]
+            if out_size is not None and tuple(out_size) != scores.shape[:0:-1]:
+                hwc = cv2.resize(np.ascontiguousarray(scores.transpose(1, 2, 0)), tuple(out_size),
+                                 interpolation=cv2.INTER_LINEAR)
+                scores = hwc.reshape(out_size[1], out_size[0], -1).transpose(2, 0, 1)
+            arg = np.argmax(scores, axis=0)
             lut = np.zeros(logits.shape[1], np.uint8)  # model classes not in the map -> 0
             for k, v in self.head_map[head].items():
                 if k < len(lut):
@@ -187,8 +198,8 @@ class OnnxSegmenter(Segmenter):
     def segment(self, image_rgb, labels_true=None) -> np.ndarray:
         if image_rgb is None:
             raise ValueError("OnnxSegmenter needs the camera image of the frame")
-        labels = self.segment_model_size(image_rgb)
         h, w = image_rgb.shape[:2]
+        labels = self.segment_model_size(image_rgb, (w, h) if self.upsample == "bilinear" else None)
         if labels.shape != (h, w):
             labels = cv2.resize(labels, (w, h), interpolation=cv2.INTER_NEAREST)
         return labels
