@@ -59,27 +59,45 @@ class _Traversal:
         """(cells, ballot class, votes behind the ballot) per observed cell, cells unique."""
         if self._ballots is None:
             cells, votes = self._summed()
-            # ties go to the higher class (paint over road): argmax over the reversed classes
-            ballot = (NUM_CLASSES - 1) - np.argmax(votes[:, ::-1], axis=1)
-            weight = np.minimum(votes[np.arange(len(cells)), ballot].astype(np.uint32), VOTE_CAP)
+            ballot, weight = _ballot(votes[:, c] for c in range(NUM_CLASSES))
             seen = weight > 0  # an all-zero row is no observation
             self._ballots = (cells[seen], ballot[seen], weight[seen])
         return self._ballots
 
     def _summed(self) -> tuple[np.ndarray, np.ndarray]:
-        """Sum the pieces per cell: stable sort (pieces are sorted runs), then group sums as
-        differences of a running sum."""
+        """Sum the pieces per cell: unique cells from a hit mask, a lookup table to compact
+        indices, then one bincount per class (exact: float64 holds integer sums < 2^53)."""
         if len(self.pieces) > 1:
             cells = np.concatenate([c for c, _ in self.pieces])
-            order = np.argsort(cells, kind="stable")
-            cells = cells[order]
-            votes = np.concatenate([v for _, v in self.pieces])[order].astype(np.uint64)
-            ends = np.flatnonzero(np.r_[cells[1:] != cells[:-1], True])
-            running = np.cumsum(votes, axis=0)
-            sums = running[ends]
-            sums[1:] -= running[ends[:-1]]
-            self.pieces = [(cells[ends], np.minimum(sums, VOTE_CAP).astype(np.uint32))]
+            votes = np.concatenate([v for _, v in self.pieces])
+            hit = np.zeros(CELLS_PER_TILE, dtype=bool)
+            hit[cells] = True
+            unique = np.flatnonzero(hit)
+            lut = np.empty(CELLS_PER_TILE, dtype=np.intp)
+            lut[unique] = np.arange(len(unique))
+            inverse = lut[cells]
+            sums = np.empty((NUM_CLASSES, len(unique)), dtype=np.uint32)  # class-major
+            for c in range(NUM_CLASSES):
+                col = np.bincount(inverse, weights=votes[:, c], minlength=len(unique))
+                np.minimum(col, VOTE_CAP, out=col)
+                sums[c] = col
+            self.pieces = [(unique.astype(np.uint32), sums.T)]
         return self.pieces[0]
+
+
+def _ballot(columns) -> tuple[np.ndarray, np.ndarray]:
+    """Per row: the class with the most votes (ties to the higher class: paint over road) and
+    its votes, from the per-class vote columns in class order (1-D passes, no 2-D argmax)."""
+    best = ballot = None
+    for c, col in enumerate(columns):
+        col = col.astype(np.uint32)
+        if best is None:
+            best, ballot = col, np.zeros(len(col), dtype=np.uint8)
+            continue
+        better = col >= best
+        best = np.where(better, col, best)
+        ballot[better] = c
+    return ballot, np.minimum(best, VOTE_CAP)
 
 
 @dataclass

@@ -1,0 +1,226 @@
+"""Merger benchmark: merged cell-votes per second per shard next to a plain numpy bincount over the
+same data in the same run, and acked ingest throughput with 2 shards against 1 through a real
+router (separate processes, SQLite durable store).
+
+    python bench/bench_merger.py --out DIR [--quick]   -> DIR/merger.json
+
+A cell-vote is one patch row: one cell with its 6 class counts. "Merged" = MergerShard.apply_batch
+of every patch + flush() (the evidence rule's labels for every tile), from patch objects to label
+rasters. The bincount reference sums the same rows per tile (paper: plain vote accumulation)
+with np.bincount, including the concatenation of each tile's patches: the practical limit of
+numpy. Data: every tile of a world (town) observed by several traversals, each traversal's votes
+for a tile split into spatially contiguous patches as a vehicle sends them."""
+
+import argparse
+import json
+import logging
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from common import codec, keys  # noqa: E402
+from common.classes import NUM_CLASSES  # noqa: E402
+from common.grid import CELLS_PER_TILE, owner_of_tile  # noqa: E402
+from common.messages import GridPatch, IngestAck, IngestBatch  # noqa: E402
+from services.merger.shard import MergerShard  # noqa: E402
+
+logger = logging.getLogger("bench.merger")
+
+
+# -- data --------------------------------------------------------------------------------------
+
+
+def world_label_tiles(quick: bool) -> dict:
+    sys.path.insert(0, str(REPO / "bench"))
+    import bench_codec
+
+    return bench_codec.world_tiles(bench_codec.load_world("town:1" if quick else "town:3", quick))
+
+
+def traversal_patches(tiles: dict, traversals: int, pieces: int, seed: int = 0) -> list[GridPatch]:
+    """Every tile seen by every traversal, votes 1..12 for the true class plus noise votes."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(traversals):
+        for tile, labels in tiles.items():
+            flat = labels.ravel()
+            cells = np.flatnonzero(flat).astype(np.uint32)
+            votes = np.zeros((len(cells), NUM_CLASSES), np.uint16)
+            votes[np.arange(len(cells)), flat[cells]] = rng.integers(1, 13, len(cells))
+            noisy = rng.random(len(cells)) < 0.1
+            votes[np.flatnonzero(noisy), rng.integers(0, NUM_CLASSES, noisy.sum())] += 2
+            for j, part in enumerate(np.array_split(np.arange(len(cells)), pieces)):
+                out.append(GridPatch(f"{tile}/{k}/{j}", "bench", tile, cells[part], votes[part],
+                                     k * 10**12 + j, k * 10**12 + j + 1, f"d{k}"))
+    return out
+
+
+# -- merge throughput ----------------------------------------------------------------------------
+
+
+def _ours(patches) -> None:
+    shard = MergerShard(max_batch_patches=len(patches), max_batch_cells=1 << 40)
+    shard.apply_batch(patches)
+    shard.flush()
+
+
+def _bincount(patches) -> None:
+    by_tile: dict = {}
+    for p in patches:
+        by_tile.setdefault(p.tile, []).append(p)
+    classes = np.arange(NUM_CLASSES, dtype=np.int64)
+    for group in by_tile.values():
+        cells = np.concatenate([p.cells for p in group]).astype(np.int64)
+        votes = np.concatenate([p.votes for p in group])
+        idx = (cells[:, None] * NUM_CLASSES + classes).ravel()
+        np.bincount(idx, weights=votes.ravel(), minlength=CELLS_PER_TILE * NUM_CLASSES)
+
+
+def _best_times(fn, patches, repeats: int) -> tuple[float, float]:
+    """(min wall s, min process CPU s) over repeats: the machine is shared, CPU time is what a
+    shard with a core of its own would take."""
+    wall, cpu = [], []
+    for _ in range(repeats):
+        w0, c0 = time.perf_counter(), time.process_time()
+        fn(patches)
+        wall.append(time.perf_counter() - w0)
+        cpu.append(time.process_time() - c0)
+    return min(wall), min(cpu)
+
+
+def merge_throughput(quick: bool) -> dict:
+    tiles = world_label_tiles(quick)
+    patches = traversal_patches(tiles, traversals=6, pieces=4)
+    rows = sum(len(p.cells) for p in patches)
+    repeats = 3 if quick else 5
+    ours_w, ours_c = _best_times(_ours, patches, repeats)
+    ref_w, ref_c = _best_times(_bincount, patches, repeats)
+    return {
+        "cell_votes_per_s": round(rows / ours_c),
+        "bincount_cell_votes_per_s": round(rows / ref_c),
+        "ratio_to_bincount": round(ref_c / ours_c, 3),
+        "wall_clock": {"cell_votes_per_s": round(rows / ours_w),
+                       "bincount_cell_votes_per_s": round(rows / ref_w)},
+        "timing": f"process CPU time, best of {repeats}, one core (wall_clock: best wall time)",
+        "load_average_1m": round(os.getloadavg()[0], 2),
+        "cell_votes": rows, "patches": len(patches), "tiles": len(tiles), "traversals": 6,
+        "goal": {"cell_votes_per_s_min": 5_000_000, "ratio_to_bincount_min": 0.333},
+    }
+
+
+# -- ingest scaling ------------------------------------------------------------------------------
+
+
+def _spawn(args: list[str], log) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=REPO,
+                            stdout=subprocess.DEVNULL, stderr=log)
+
+
+def ingest_rate(n_shards: int, batches: list[IngestBatch], window: int = 8) -> float:
+    """Acked patches per second for `batches` sent to their owner shards (n_shards processes)."""
+    from common.bus import free_tcp_port, open_session, wait_for_tcp
+    from common.config import BusConfig
+
+    procs = []
+    with tempfile.TemporaryDirectory() as tmp, open(Path(tmp) / "log.txt", "w") as log:
+        port = free_tcp_port()
+        endpoint = f"tcp/127.0.0.1:{port}"
+        try:
+            procs.append(_spawn(["router", "--listen", endpoint], log))
+            wait_for_tcp("127.0.0.1", port, 15)
+            for s in range(n_shards):
+                procs.append(_spawn(["merger", "--shard", str(s), "--shards", str(n_shards),
+                                     "--store", f"{tmp}/s{s}.sqlite", "--connect", endpoint,
+                                     "--log-level", "WARNING"], log))
+            with open_session(BusConfig(connect=[endpoint])) as session:
+                _wait_shards(session, n_shards)
+                work = [(keys.ingest(owner_of_tile(b.patches[0].tile, n_shards)), codec.encode(b))
+                        for b in batches]
+                n = sum(len(b.patches) for b in batches)
+                t0 = time.perf_counter()
+                _pipelined(session, work, window)
+                return n / (time.perf_counter() - t0)
+        finally:
+            for p in reversed(procs):
+                p.terminate()
+            for p in procs:
+                p.wait(15)
+
+
+def _wait_shards(session, n_shards: int, timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        alive = list(session.liveliness().get(keys.alive_all("merger"), timeout=1.0))
+        if len(alive) >= n_shards:
+            return
+        time.sleep(0.1)
+    raise RuntimeError("merger shards did not come up")
+
+
+def _pipelined(session, work, window: int) -> None:
+    """Keep `window` gets in flight; every batch must be acked without error."""
+    inflight = []
+    for key, payload in work:
+        inflight.append(session.get(key, payload=payload, timeout=30.0))
+        if len(inflight) >= window:
+            _expect_ack(inflight.pop(0))
+    for h in inflight:
+        _expect_ack(h)
+
+
+def _expect_ack(handler) -> None:
+    for reply in handler:
+        if reply.ok is not None:
+            ack = codec.decode(reply.ok.payload.to_bytes(), expect=IngestAck)
+            if ack.error:
+                raise RuntimeError(ack.error)
+            return
+    raise RuntimeError("no ack")
+
+
+def ingest_scaling(quick: bool) -> dict:
+    tiles = world_label_tiles(True)
+    # both shards must own tiles: pick tiles of each owner alternately
+    by_owner = {0: [], 1: []}
+    for t in tiles:
+        by_owner[owner_of_tile(t, 2)].append(t)
+    n = min(len(by_owner[0]), len(by_owner[1]))
+    chosen = [t for pair in zip(by_owner[0][:n], by_owner[1][:n], strict=True) for t in pair]
+    patches = traversal_patches({t: tiles[t] for t in chosen}, traversals=2 if quick else 4,
+                                pieces=8)
+    batches = [IngestBatch(patches[i:i + 4]) for i in range(0, len(patches), 4)]
+    one = ingest_rate(1, batches)
+    two = ingest_rate(2, batches)
+    return {"ingest_1_shard_per_s": round(one, 1), "ingest_2_shards_per_s": round(two, 1),
+            "ratio": round(two / one, 3), "unit": "acked patches/s", "cores": os.cpu_count(),
+            "patches": len(patches), "cell_votes": sum(len(p.cells) for p in patches),
+            "goal_ratio_min": 1.7}
+
+
+def run(quick: bool = False) -> dict:
+    return {"merge": merge_throughput(quick), "scaling": ingest_scaling(quick)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--quick", action="store_true")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.INFO)
+    result = run(args.quick)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "merger.json").write_text(json.dumps(result, indent=1))
+    sys.stdout.write(json.dumps(result, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
