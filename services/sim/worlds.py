@@ -62,12 +62,13 @@ def _existing(path: str) -> Path:
 def repaint(world: World, seed: int = 0, shift_m: float = 1.0) -> World:
     """A copy of the world with one lane line on a frequently driven road moved shift_m sideways.
 
-    The chosen line is the solid or dashed line (all its dashes) nearest to the middle of the
-    first route; every polygon of it moves along the route's normal there."""
+    The chosen line (all its dashes) is the one nearest to a point 120-250 m into the first
+    route, which every vehicle drives first (so short drives see it); it moves along the route's
+    normal there."""
     rng = np.random.default_rng(seed)
     route = world.routes[0]
     s = paint.arc_length(route)
-    at = s[-1] * rng.uniform(0.3, 0.6)
+    at = min(rng.uniform(120.0, 250.0), 0.5 * s[-1])
     k = int(np.searchsorted(s, at))
     p = route[min(k, len(route) - 1)]
     d = route[min(k + 1, len(route) - 1)] - route[max(k - 1, 0)]

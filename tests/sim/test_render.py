@@ -1,0 +1,107 @@
+"""The renderer: markings land in the image exactly where the camera model projects them;
+label images invert through the IPM table; RGB frames are seeded, reproducible and fast enough
+to be worth benchmarking (timing lives in bench/bench_render.py)."""
+
+import numpy as np
+import pytest
+
+from common.camera import build_ipm_lookup, camera_from_config
+from common.classes import Cls
+from common.config import CameraConfig
+from common.world import Marking, World
+from services.sim.render import FrameRenderer, LabelRenderer, Vehicle
+
+POSE = np.array([100.0, 50.0, 0.3])
+
+
+def _square(cx, cy, half, cls=Cls.GROUND_SIGN):
+    return Marking(cls, np.array([[cx - half, cy - half], [cx + half, cy - half],
+                                  [cx + half, cy + half], [cx - half, cy + half]]))
+
+
+def _world_with_square(x_v, y_v, half=0.4):
+    """A road and one square marking centred at (x_v, y_v), axis-aligned in the vehicle frame."""
+    c, s = np.cos(POSE[2]), np.sin(POSE[2])
+    sq = _square(x_v, y_v, half).polygon_xy_m
+    world_sq = sq @ np.array([[c, s], [-s, c]]) + POSE[:2]
+    road = _square(POSE[0], POSE[1], 60.0, Cls.ROAD)
+    return World("square", [road, Marking(Cls.GROUND_SIGN, world_sq)]), world_sq.mean(axis=0)
+
+
+@pytest.fixture(scope="module")
+def camera():
+    return camera_from_config(CameraConfig())
+
+
+@pytest.mark.parametrize("x_v, y_v", [(8.0, 0.0), (12.0, 2.5), (6.0, -1.5)])
+def test_marking_lands_where_the_camera_projects_it(camera, x_v, y_v):
+    world, _ = _world_with_square(x_v, y_v)
+    lab, _, _ = LabelRenderer(world, camera).labels(POSE, camera.T_vehicle_camera)
+    uv, front = camera.project_vehicle_points(np.array([[x_v, y_v, 0.0]]))
+    assert front[0]
+    u, v = np.floor(uv[0]).astype(int)
+    assert lab[v, u] == Cls.GROUND_SIGN
+    # the blob lies between the projections of the square shrunk and grown by one 0.1 m cell
+    vv, uu = np.nonzero(lab == Cls.GROUND_SIGN)
+    for grow, inside in ((0.11, True), (-0.11, False)):
+        h = 0.4 + grow
+        corners = np.array([[x_v + dx, y_v + dy, 0.0] for dx in (-h, h) for dy in (-h, h)])
+        cuv, _ = camera.project_vehicle_points(corners)
+        if inside:  # every labelled pixel is inside the grown square
+            assert cuv[:, 0].min() - 1 <= uu.min() and uu.max() <= cuv[:, 0].max() + 1
+            assert cuv[:, 1].min() - 1 <= vv.min() and vv.max() <= cuv[:, 1].max() + 1
+        else:  # every pixel of the shrunk square is labelled
+            u0, u1 = np.ceil(cuv[:, 0].min()), np.floor(cuv[:, 0].max())
+            v0, v1 = np.ceil(cuv[:, 1].min()), np.floor(cuv[:, 1].max())
+            assert (lab[int(v0):int(v1), int(u0):int(u1)] == Cls.GROUND_SIGN).mean() > 0.95
+
+
+def test_labels_invert_through_the_ipm_table(camera):
+    world, _ = _world_with_square(9.0, 1.0, half=0.5)
+    lab, _, _ = LabelRenderer(world, camera).labels(POSE, camera.T_vehicle_camera)
+    ipm = build_ipm_lookup(camera, x_min_m=3.0, length_m=12.0, width_m=8.0)
+    xy, cls = ipm.lookup(lab)
+    sign = xy[cls == Cls.GROUND_SIGN]
+    assert len(sign) > 50
+    assert np.all(np.abs(sign - [9.0, 1.0]) <= 0.5 + 0.15)  # + one cell diagonal
+    # pixel means lean to the near side (perspective); the extent is centred on the square
+    mid = (sign.min(axis=0) + sign.max(axis=0)) / 2.0
+    assert np.allclose(mid, [9.0, 1.0], atol=0.07)
+
+
+def test_no_labels_above_the_horizon(camera):
+    world, _ = _world_with_square(10.0, 0.0)
+    lab, geo, _ = LabelRenderer(world, camera).labels(POSE, camera.T_vehicle_camera)
+    assert (lab[~geo.ground] == 0).all()
+    assert (lab[: int(camera.K[1, 2]) - 40] == 0).all()
+
+
+def test_rgb_is_seeded_and_reproducible(camera):
+    world, _ = _world_with_square(10.0, 0.0)
+    a = FrameRenderer(world, camera, seed=7).render(POSE, camera.T_vehicle_camera, 0.0)
+    b = FrameRenderer(world, camera, seed=7).render(POSE, camera.T_vehicle_camera, 0.0)
+    c = FrameRenderer(world, camera, seed=8).render(POSE, camera.T_vehicle_camera, 0.0)
+    assert a[0].shape == (camera.height, camera.width, 3) and a[0].dtype == np.uint8
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    assert not np.array_equal(a[0], c[0])
+
+
+def test_paint_is_brighter_than_asphalt(camera):
+    world, _ = _world_with_square(8.0, 0.0, half=0.6)
+    r = FrameRenderer(world, camera, seed=1)
+    r.look.fade, r.look.wear_level, r.look.shadow_strength = 1.0, 0.0, 0.0
+    rgb, lab = r.render(POSE, camera.T_vehicle_camera, 0.0)
+    grey = rgb.astype(float).mean(axis=2)
+    assert grey[lab == Cls.GROUND_SIGN].mean() > grey[lab == Cls.ROAD].mean() + 40
+
+
+def test_other_vehicles_occlude_the_road_and_get_label_zero(camera):
+    world, _ = _world_with_square(10.0, 0.0)
+    r = FrameRenderer(world, camera, seed=2)
+    lead = Vehicle(10.0, 0.0, 0.0, 4.4, 1.8, 1.5, (200, 30, 30), relative=True)
+    _, free = r.render(POSE, camera.T_vehicle_camera, 0.0)
+    rgb, lab = r.render(POSE, camera.T_vehicle_camera, 0.0, [lead])
+    uv, _ = camera.project_vehicle_points(np.array([[8.6, 0.0, 0.5]]))  # its rear, low
+    u, v = np.round(uv[0]).astype(int)
+    assert free[v, u] != 0 and lab[v, u] == 0
+    assert (lab == Cls.GROUND_SIGN).sum() < (free == Cls.GROUND_SIGN).sum()
