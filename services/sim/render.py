@@ -190,7 +190,7 @@ class FrameRenderer:
         self.h, self.w = camera.height, camera.width
         yy, xx = np.mgrid[0:self.h, 0:self.w].astype(np.float32)
         r2 = ((xx - self.w / 2) / self.w) ** 2 + ((yy - self.h / 2) / self.h) ** 2
-        self.vignette = (1.0 - 0.35 * r2).astype(np.float32)[..., None]
+        self.vignette = cv2.merge([(1.0 - 0.35 * r2).astype(np.float32)] * 3)
         self._paint_cache = None
         self.noise = [self.rng.normal(0, self.look.noise_sigma, (self.h, self.w, 3)).astype(np.float32)
                       for _ in range(4)]
@@ -246,14 +246,16 @@ class FrameRenderer:
         shade = (1.0 - look.shadow_strength * self._remap_wrap(look.shadow, wx, wy, 0.25)) * gain
         fog = np.clip(geo.dist * np.float32(1.0 / look.fog_m), 0.0, 1.0) ** 1.5
         keep = shade * (1.0 - fog)
-        base = look.offroad_rgb + (look.asphalt_rgb - look.offroad_rgb) * road[..., None]
-        col = base * (tex * keep * (1.0 - paint))[..., None]
-        col += look.paint_rgb * (paint * keep)[..., None]
-        col += look.haze_rgb * fog[..., None]
-        return col
+        a = tex * keep * (1.0 - paint)
+        b = paint * keep
+        # per colour plane: (H, W) x scalar ops are far cheaper than (H, W, 1) x (3,) broadcasts
+        off, d = look.offroad_rgb, look.asphalt_rgb - look.offroad_rgb
+        return [(off[c] + d[c] * road) * a + look.paint_rgb[c] * b + look.haze_rgb[c] * fog
+                for c in range(3)]
 
-    def _sky(self, rgb, geo, pose):
-        """Sky gradient and a world-fixed skyline (buildings, trees) where no ground is seen."""
+    def _sky(self, planes, geo, pose):
+        """Sky gradient and a world-fixed skyline (buildings, trees) where no ground is seen;
+        returns the merged (H, W, 3) float32 image."""
         look = self.look
         small = (self.w // 4, self.h // 4)
         rx, ry, rz = (cv2.resize(r, small, interpolation=cv2.INTER_AREA) for r in geo.rays)
@@ -268,8 +270,10 @@ class FrameRenderer:
         bcol = bcol * np.where(windows, 0.6, 1.0)[..., None] * look.gain
         sky = np.where(building[..., None], bcol, sky).astype(np.float32)
         sky = cv2.resize(sky, (self.w, self.h), interpolation=cv2.INTER_LINEAR)
-        np.copyto(rgb, sky, where=~geo.ground[..., None])
-        return rgb
+        no_ground = ~geo.ground
+        for c in range(3):
+            np.copyto(planes[c], sky[:, :, c], where=no_ground)
+        return cv2.merge([p.astype(np.float32, copy=False) for p in planes])
 
     def _vehicle_items(self, pose, T_vehicle_camera, vehicles):
         """(image hull int32, vehicle, corner pixels) of other vehicles, far to near; vehicles
@@ -308,10 +312,10 @@ class FrameRenderer:
 
     def _sensor(self, rgb):
         """Vignetting, optional blur, pixel noise, 8-bit."""
-        rgb *= self.vignette
+        rgb = cv2.multiply(rgb, self.vignette)
         if self.rng.random() < self.look.blur_prob:
             rgb = cv2.GaussianBlur(rgb, (0, 0), float(self.rng.uniform(0.6, 1.6)))
-        rgb += self.noise[int(self.rng.integers(len(self.noise)))]
+        rgb = cv2.add(rgb, self.noise[int(self.rng.integers(len(self.noise)))])
         return np.clip(rgb, 0, 255, out=rgb).astype(np.uint8)
 
 

@@ -1,0 +1,83 @@
+"""Benchmark of the simulator's camera renderer: ms per 640 x 360 frame (RGB + labels, and labels
+only) along a town drive, plus label-only simulation speed. Writes JSON.
+
+    python bench/bench_render.py [--out bench_render.json] [--frames 200] [--world town]
+"""
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from common.camera import camera_from_config  # noqa: E402
+from common.config import CameraConfig  # noqa: E402
+from services.sim import motion, sensors  # noqa: E402
+from services.sim.render import FrameRenderer  # noqa: E402
+from services.sim.simulate import _other_vehicles, simulate_drives  # noqa: E402
+from services.sim.worlds import load_world  # noqa: E402
+
+
+def _stats(ms: list[float]) -> dict:
+    a = np.array(ms)
+    return {"p50_ms": round(float(np.percentile(a, 50)), 2),
+            "p95_ms": round(float(np.percentile(a, 95)), 2), "frames": len(a)}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="bench_render.json")
+    ap.add_argument("--frames", type=int, default=200)
+    ap.add_argument("--world", default="town")
+    ap.add_argument("--sim-km", type=float, default=2.0, help="label-only drive length")
+    args = ap.parse_args()
+
+    world = load_world(args.world, seed=0)
+    camera = camera_from_config(CameraConfig())
+    rng = np.random.default_rng(0)
+    traj = motion.drive(world.routes[0], rng)
+    t = np.arange(0.0, traj.duration_s, 0.1)[: args.frames + 10]
+    poses = traj.poses(t)
+    others = _other_vehicles(traj, rng)
+    shake = sensors.vibration(len(t), sensors.PROFILES["mapping"], rng)
+    renderer = FrameRenderer(world, camera, seed=0)
+    rgb_ms, lab_ms = [], []
+    for i, (ti, pose) in enumerate(zip(t, poses)):
+        T = camera.perturbed(shake[i, 0], shake[i, 1]).T_vehicle_camera
+        t0 = time.perf_counter()
+        renderer.render(pose, T, float(ti), others(ti))
+        t1 = time.perf_counter()
+        renderer.labels(pose, T, others(ti))
+        t2 = time.perf_counter()
+        if i >= 10:  # after warm-up (tile cache, first window)
+            rgb_ms.append(1000 * (t1 - t0))
+            lab_ms.append(1000 * (t2 - t1))
+
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        path = simulate_drives(world, tmp, images=False, max_km=args.sim_km)[0]
+        sim_s = time.perf_counter() - t0
+        frames = len(list((Path(path) / "labels").glob("*.png")))
+
+    report = {
+        "cores": os.cpu_count(), "python": platform.python_version(),
+        "world": world.name, "size": [camera.width, camera.height],
+        "render_rgb_and_labels": _stats(rgb_ms),
+        "render_labels_only": _stats(lab_ms),
+        "label_only_sim": {"km": args.sim_km, "frames": frames, "wall_s": round(sim_s, 2),
+                           "frames_per_s": round(frames / sim_s, 1)},
+    }
+    Path(args.out).write_text(json.dumps(report, indent=1))
+    sys.stdout.write(json.dumps(report, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
