@@ -55,6 +55,8 @@ class DemoRun:
         self.chaos_events: list[dict] = []
         self.vehicle_summaries: list[dict] = []
         self.max_km = self.d.small_max_km if args.small else self.d.max_km
+        if args.scenario == "repaint":
+            self.max_km = max(self.max_km, self.d.repaint_min_km)
         self.world = self.world_after = None
 
     def step(self, name: str, fn, *a, **kw):
