@@ -117,6 +117,9 @@ class LocalizerConfig:
     prefetch_ahead_m: float = 60.0  # and these along the direction of travel
     cache_tiles: int = 25
     publish: bool = True  # publish roadmap/pose/<vehicle>
+    recent_frames: int = 0  # also match a sample of the last n frames' points (odometry-chained)
+    icp_prior: bool = False  # use the filter's prediction as a prior inside ICP
+    estimate_attitude: bool = True  # estimate camera pitch/roll per frame in ICP
 
 
 @dataclass(frozen=True)

@@ -101,10 +101,12 @@ class Icp:
         self.min_points = min_points
 
     def register(self, points_v: np.ndarray, slots: np.ndarray, pose0: np.ndarray, local_map,
-                 jacobians: np.ndarray | None = None):
+                 jacobians: np.ndarray | None = None, prior_cov: np.ndarray | None = None):
         """Align points (N, 2) of class slots (N,) to the map from an initial pose; None if too few.
 
-        jacobians: optional (N, 2, k) derivatives of the points w.r.t. camera pitch and roll."""
+        jacobians: optional (N, 2, k) derivatives of the points w.r.t. camera pitch and roll.
+        prior_cov: optional 3x3 covariance of pose0 (the filter's prediction): a prior that keeps
+        directions the points hardly constrain (the flat bottom of the cost) where they were."""
         pose = np.asarray(pose0, dtype=np.float64).copy()
         if len(points_v) < self.min_points:
             return None
@@ -112,6 +114,9 @@ class Icp:
         jac = None if jacobians is None else np.asarray(jacobians, dtype=np.float64)
         att = np.zeros(0 if jac is None else jac.shape[2])
         scale = np.array([1.0, 1.0, self.yaw_lever_m])  # information in comparable units
+        prior = None if prior_cov is None else (
+            self.point_sigma_m**2 * self.cov_scale * np.linalg.inv(prior_cov))
+        pose_prior = pose.copy()
         it = 0
         for it in range(self.iterations):
             gate = self.gate_start_m + (self.gate_end_m - self.gate_start_m) * it / max(
@@ -122,6 +127,11 @@ class Icp:
                                                   nearest[valid], pose, gate, self.huber_m)
             if inl.sum() < self.min_points:
                 return None
+            if prior is not None:
+                delta = pose - pose_prior
+                delta[2] = float(wrap_angle(delta[2]))
+                H[:3, :3] += prior
+                g[:3] += prior @ delta
             step, d_att = self._step(H, g, att, scale)
             pose = pose + step
             pose[2] = float(wrap_angle(pose[2]))

@@ -36,7 +36,8 @@ class Localizer:
                  gnss_min_sigma_m: float = 1.0, init_travel_m: float = 12.0, init_frames: int = 30,
                  init_min_overlap: float = 0.5, init_sigma_m: float = 0.3,
                  init_min_frames: int = 8, init_every: int = 4, init_margin: float = 0.05,
-                 reinit_bad_frames: int = 30, seed: int = 0):
+                 reinit_bad_frames: int = 30, recent_frames: int = 8, recent_points: int = 80,
+                 use_prior: bool = True, seed: int = 0):
         self.cache, self.icp, self.ekf, self.search = cache, icp, ekf, search
         self.max_points, self.road_fraction = max_points, road_fraction
         self.gnss_inflate, self.gnss_min_sigma_m = gnss_inflate, gnss_min_sigma_m
@@ -45,6 +46,9 @@ class Localizer:
         self.init_min_frames, self.init_every = init_min_frames, init_every
         self.init_margin = init_margin
         self.reinit_bad_frames = reinit_bad_frames
+        self.recent_frames, self.recent_points = recent_frames, recent_points
+        self.use_prior = use_prior
+        self.recent: deque = deque(maxlen=max(recent_frames, 1))  # tracking: multi-frame matching
         self._rng = np.random.default_rng(seed)
         self.t_ns: int | None = None
         self.odom = np.zeros(3)  # dead-reckoned pose in an arbitrary frame (for the init submap)
@@ -61,7 +65,8 @@ class Localizer:
         """Advance from the last input time to t_ns at the given speed and yaw rate."""
         if self.t_ns is not None and t_ns > self.t_ns:
             dt = (t_ns - self.t_ns) * 1e-9
-            self.odom = se2_compose(self.odom, _motion(speed_mps, yaw_rate_rps, dt))
+            scale = self.ekf.odometry_scale if self.ekf.initialized else 1.0
+            self.odom = se2_compose(self.odom, _motion(speed_mps * scale, yaw_rate_rps, dt))
             self.travel_m += abs(speed_mps) * dt
             self.ekf.predict(speed_mps, yaw_rate_rps, dt)
         self.t_ns = t_ns if self.t_ns is None else max(self.t_ns, t_ns)
@@ -85,7 +90,11 @@ class Localizer:
             diag = self._try_initialize()
             if not self.ekf.initialized:
                 return Estimate(t_ns, np.full(3, np.nan), np.eye(3) * 1e6, False, diag)
-        result = self.icp.register(pts, class_slots(cls), self.ekf.pose, self.cache, jac)
+        all_pts, all_cls, all_jac = self._with_recent(pts, cls, jac)
+        prior = self.ekf.cov if self.use_prior else None
+        result = self.icp.register(all_pts, class_slots(all_cls), self.ekf.pose, self.cache,
+                                   all_jac, prior)
+        self._remember(result, pts, cls, jac)
         accepted = result is not None and self.ekf.update_pose(result.pose, result.cov)
         diag = self._frame_diag(result, accepted)
         self._watch_integrity(result, accepted)
@@ -103,6 +112,32 @@ class Localizer:
         idx = keep[np.concatenate([self._rng.choice(paint, n_paint, replace=False),
                                    self._rng.choice(road, n_road, replace=False)]).astype(np.int64)]
         return pts[idx], cls[idx], None if jac is None else np.asarray(jac, float)[idx]
+
+    def _with_recent(self, pts, cls, jac):
+        """This frame's points plus a sample of the last frames' (attitude-corrected) points,
+        carried into this vehicle frame by odometry: a longer baseline constrains yaw and the
+        along-road position much better than one 12 m footprint."""
+        if not self.recent:
+            return pts, cls, jac
+        old_p, old_c = [], []
+        for odom_k, p_k, c_k in self.recent:
+            old_p.append(transform_points_2d(se2_between(self.odom, odom_k), p_k))
+            old_c.append(c_k)
+        old_p, old_c = np.concatenate(old_p), np.concatenate(old_c)
+        out_jac = None
+        if jac is not None:
+            out_jac = np.concatenate([jac, np.zeros((len(old_p),) + jac.shape[1:])])
+        return np.concatenate([pts, old_p]), np.concatenate([cls, old_c]), out_jac
+
+    def _remember(self, res, pts, cls, jac):
+        """Keep a sample of this frame's points, corrected by its estimated camera attitude."""
+        if self.recent_frames <= 0:
+            return
+        if res is not None and jac is not None and len(res.attitude):
+            pts = pts + jac @ res.attitude
+        k = min(len(pts), self.recent_points)
+        idx = self._rng.choice(len(pts), k, replace=False)
+        self.recent.append((self.odom.copy(), pts[idx], cls[idx]))
 
     def _try_initialize(self) -> dict:
         """Coarse search + ICP refine on the submap of the last frames.
@@ -178,7 +213,9 @@ class Localizer:
         if res is not None:
             d.update(points=res.points, inliers=res.inliers, rmse_m=round(res.rmse_m, 4),
                      degenerate=bool(res.degenerate), iterations=res.iterations,
-                     att=[round(float(a), 5) for a in res.attitude])
+                     att=[round(float(a), 5) for a in res.attitude],
+                     icp_pose=[round(float(v), 4) for v in res.pose],
+                     icp_sigma=[round(float(np.sqrt(res.cov[k, k])), 4) for k in range(3)])
         return d
 
     def _watch_integrity(self, res: IcpResult | None, accepted: bool) -> None:
@@ -189,6 +226,7 @@ class Localizer:
             logger.warning("localization diverged (%d bad frames): re-initializing", self.bad_frames)
             self.ekf.initialized = False
             self.submap.clear()
+            self.recent.clear()
             self.travel_m = 0.0
 
 
@@ -228,7 +266,8 @@ def get_localizer(lc, cache: TileCache, seed: int = 0) -> Localizer:
     return Localizer(cache, icp=icp, ekf=ekf, search=search, max_points=lc.max_points,
                      road_fraction=lc.road_fraction, gnss_inflate=lc.gnss_inflate,
                      init_travel_m=lc.init_travel_m, init_frames=lc.init_frames,
-                     reinit_bad_frames=lc.reinit_bad_frames, seed=seed)
+                     reinit_bad_frames=lc.reinit_bad_frames, recent_frames=lc.recent_frames,
+                     use_prior=lc.icp_prior, seed=seed)
 
 
 def replay(localizer: Localizer, streams: dict, frame_points, on_estimate=None) -> list[Estimate]:

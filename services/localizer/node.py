@@ -98,6 +98,7 @@ class _FrameSource:
         self.log = log
         lc, roi = cfg.localizer, cfg.roi
         self.stride = lc.ipm_stride
+        self.estimate_attitude = lc.estimate_attitude
         self.ipm = FramePoints(log.meta.camera, x_min_m=roi.x_min_m, length_m=roi.length_m,
                                width_m=roi.width_m)
         if lc.segmenter == "truth":
@@ -114,7 +115,8 @@ class _FrameSource:
         if image is None and truth is None:
             raise DriveLogError(f"{self.log.root}: frame {i} has neither an image nor labels")
         labels = self.segmenter.segment(image, truth)
-        return self.ipm.points(labels, stride=self.stride)
+        pts, cls, jac = self.ipm.points(labels, stride=self.stride)
+        return (pts, cls, jac) if self.estimate_attitude else (pts, cls)
 
 
 def _wanted_tiles(loc, streams, i: int, lc):
