@@ -131,6 +131,8 @@ class VehicleConfig:
     calib_window_s: float = 5.0  # odometry scale / gyro bias calibration window
     seal_every_frames: int = 100  # committed frames per patch sequence number
     ipm_stride: int = 1  # pixel subsampling of the IPM lookup
+    max_range_m: float = 11.0  # vote only ground points up to this far ahead (caps roi.length_m):
+    # a 0.3 deg pitch vibration moves a ground point by range^2 / height x 0.005 (0.8 m at 15 m)
     upload_batch: int = 16  # patches per IngestBatch
     upload_timeout_s: float = 5.0  # per ingest query
     backoff_min_s: float = 0.05

@@ -39,7 +39,8 @@ def build_mapper(log: DriveLog, vehicle: str, cfg: RoadmapConfig, segmenter_kind
     return VehicleMapper(
         vehicle=vehicle, traversal=log.meta.traversal, camera=log.meta.camera,
         segmenter=_segmenter(log, cfg, segmenter_kind), roi_x_min_m=cfg.roi.x_min_m,
-        roi_length_m=cfg.roi.length_m, roi_width_m=cfg.roi.width_m, estimator=estimator,
+        roi_length_m=min(cfg.roi.length_m, v.max_range_m - cfg.roi.x_min_m),
+        roi_width_m=cfg.roi.width_m, estimator=estimator,
         seal_every_frames=v.seal_every_frames, ipm_stride=v.ipm_stride)
 
 
