@@ -13,6 +13,7 @@ A_LAT_MAX = 2.0  # m/s^2, comfortable cornering
 A_ACC = 1.2  # m/s^2
 A_BRAKE = 2.0  # m/s^2
 V_START = 2.0  # m/s: starts rolling
+MIN_TURN_RADIUS_M = 5.0
 
 
 @dataclass
@@ -42,27 +43,45 @@ class Trajectory:
 
 def driven_path(route: np.ndarray, rng, *, max_len_m: float | None, step_m: float = 0.5,
                 offset_m: float = 0.0, wobble_m: float = 0.25) -> np.ndarray:
-    """The route resampled every step_m, shifted sideways by offset_m plus a slow wobble."""
-    path = paint.resample(route, step_m)
+    """The path the car drives: the route shifted sideways by offset_m plus a slow wobble, then
+    followed by a pure-pursuit driver whose curvature is limited to a car's turning circle."""
+    line = paint.resample(paint.remove_cusps(route), step_m)
     if max_len_m is not None:
-        path = path[: max(2, int(max_len_m / step_m) + 1)]
-    s = np.arange(len(path)) * step_m
+        line = line[: max(2, int(max_len_m / step_m) + 1)]
+    s = np.arange(len(line)) * step_m
     wobble = sum(wobble_m / 2 * math.sqrt(1 / (k + 1)) * np.sin(2 * np.pi * s / lam + ph)
                  for k, (lam, ph) in enumerate(zip(rng.uniform(60, 300, 3), rng.uniform(0, 6.3, 3))))
-    path = path + (offset_m + wobble)[:, None] * paint.normals(path)
-    return _smooth(path, 7)
+    line = line + (offset_m + wobble)[:, None] * paint.normals(line)
+    return pure_pursuit(line, step_m=step_m)
 
 
-def _smooth(path: np.ndarray, k: int) -> np.ndarray:
-    """Moving average (ends kept) so that curvature is bounded and differentiable."""
-    if len(path) <= 2 * k:
-        return path
-    kernel = np.ones(2 * k + 1) / (2 * k + 1)
-    out = path.copy()
-    for d in range(2):
-        padded = np.concatenate([np.full(k, path[0, d]), path[:, d], np.full(k, path[-1, d])])
-        out[:, d] = np.convolve(padded, kernel, mode="valid")
-    return out
+def pure_pursuit(line: np.ndarray, *, step_m: float = 0.5, lookahead_m: float = 5.0,
+                 max_kappa: float = 1.0 / MIN_TURN_RADIUS_M) -> np.ndarray:
+    """Positions (N, 2) every step_m of a kinematic car tracking `line` (points every step_m)."""
+    if len(line) < 3:
+        return line
+    ahead = max(1, int(round(lookahead_m / step_m)))
+    d0 = line[min(ahead, len(line) - 1)] - line[0]
+    x, y, th = float(line[0, 0]), float(line[0, 1]), math.atan2(d0[1], d0[0])
+    idx, out = 0, [(x, y)]
+    for _ in range(3 * len(line)):
+        window = line[idx: idx + 4 * ahead]
+        idx += int(np.argmin(np.sum((window - (x, y)) ** 2, axis=1)))
+        if idx >= len(line) - 2:
+            break
+        tx, ty = line[min(idx + ahead, len(line) - 1)]
+        c, s_ = math.cos(th), math.sin(th)
+        lx, ly = c * (tx - x) + s_ * (ty - y), -s_ * (tx - x) + c * (ty - y)
+        kappa = max(-max_kappa, min(max_kappa, 2.0 * ly / max(lx * lx + ly * ly, 1e-6)))
+        th_new = th + kappa * step_m
+        if abs(kappa) > 1e-9:  # exact arc
+            x += (math.sin(th_new) - math.sin(th)) / kappa
+            y -= (math.cos(th_new) - math.cos(th)) / kappa
+        else:
+            x, y = x + step_m * c, y + step_m * s_
+        th = th_new
+        out.append((x, y))
+    return np.array(out)
 
 
 def speed_profile(s: np.ndarray, kappa: np.ndarray, rng, *, v_min: float = 8.0,

@@ -34,6 +34,22 @@ def dedupe(poly: np.ndarray, eps: float = 1e-3) -> np.ndarray:
     return poly[keep]
 
 
+def remove_cusps(poly: np.ndarray, max_turn_deg: float = 100.0) -> np.ndarray:
+    """Drop vertices where the polyline doubles back (e.g. overlapping lane pieces at a join)."""
+    poly = dedupe(poly)
+    cos_max = math.cos(math.radians(max_turn_deg))
+    for _ in range(50):
+        if len(poly) < 3:
+            return poly
+        d = np.diff(poly, axis=0)
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+        bad = np.flatnonzero(np.sum(d[1:] * d[:-1], axis=1) < cos_max) + 1
+        if len(bad) == 0:
+            return poly
+        poly = np.delete(poly, bad[::2], axis=0)
+    return poly
+
+
 def resample(poly: np.ndarray, step_m: float) -> np.ndarray:
     """Points every step_m along the polyline (end point included)."""
     poly = dedupe(poly)

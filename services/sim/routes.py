@@ -9,7 +9,7 @@ from services.sim import paint
 
 
 def chain_lanes(lanes: list[np.ndarray], rng, *, join_m: float = 1.5, max_turn_deg: float = 70.0,
-                uturn_m: float = 15.0, min_len_m: float = 200.0, max_routes: int = 6,
+                uturn_m: float = 30.0, min_len_m: float = 200.0, max_routes: int = 6,
                 max_len_m: float = 4000.0) -> list[np.ndarray]:
     """Directed lane centre lines -> long drives. A walk goes from a lane to a successor (end meets
     start within join_m, heading change below max_turn_deg), least-visited first; at a dead end it
@@ -21,7 +21,7 @@ def chain_lanes(lanes: list[np.ndarray], rng, *, join_m: float = 1.5, max_turn_d
         d = np.linalg.norm(starts - lane[-1], axis=1)
         turn = np.abs(paint_wrap(heads - _heading(lane, start=False)))
         ahead = np.flatnonzero((d < join_m) & (turn < math.radians(max_turn_deg)))
-        back = np.flatnonzero((d < uturn_m) & (d > 2.0) & (turn > math.radians(150)))
+        back = np.flatnonzero((d < uturn_m) & (d > 10.0) & (turn > math.radians(150)))
         succ.append((ahead, back))
     visits = np.zeros(len(lanes), int)
     routes = []

@@ -26,7 +26,7 @@ def world():
 def logs(world, tmp_path_factory):
     out = tmp_path_factory.mktemp("sim")
     return simulate_drives(world, out, vehicles=2, drives=1, profile="mapping", seed=3,
-                           images=True, max_km=0.12)
+                           images=True, max_km=0.08)
 
 
 def test_drive_log_round_trip(logs):
