@@ -138,7 +138,7 @@ def _histogram(values: np.ndarray, title: str, bins: int, w: int = 420, h: int =
 
 
 def repaint_strip(panels: list[tuple[str, np.ndarray]], focus: np.ndarray, path,
-                  window=(200, 300), scale=2) -> None:
+                  window=(160, 160), scale=3) -> None:
     """Figure 8 style: the same window around the repainted line at several moments."""
     ys, xs = np.nonzero(focus)
     if ys.size == 0:

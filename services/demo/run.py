@@ -247,7 +247,7 @@ class DemoRun:
         if not before["tiles"]:
             raise DemoError("the shards hold no tiles after the rounds of the old paint")
         mosaic = ev.Mosaic(before["tiles"])
-        masks = self._repaint_masks(mosaic, before["tiles"])
+        masks, new_truth = self._repaint_masks(mosaic, before["tiles"])
         snapshots = [("before repaint", _paste_within(mosaic, before))]
         history, followed_at = [], None
         for i, log in enumerate(logs["after"], start=1):
@@ -262,6 +262,7 @@ class DemoRun:
             if state["followed"]:
                 followed_at = i
                 break
+        snapshots.append(("new paint (ground truth)", new_truth))
         figures.repaint_strip(snapshots, masks[0] | masks[1], self.out / "repaint.png")
         return {"traversals_to_follow": followed_at, "traversals_before": len(logs["mapping"]),
                 "repainted_cells": {"old_only": int(masks[0].sum()), "new_only": int(masks[1].sum())},
@@ -282,7 +283,7 @@ class DemoRun:
         if not old_only.any() or not new_only.any():
             raise DemoError("the repainted lane line is outside the mapped area: choose another "
                             "--seed or a longer drive")
-        return old_only, new_only
+        return (old_only, new_only), new
 
     def _logs_mapping_all(self):
         return sorted(p for p in (self.out / "drives").glob("*/*/log.json")
