@@ -115,27 +115,12 @@ def map_digest(tiles, raw_tiles) -> str:
     return h.hexdigest()
 
 
-def km_mapped(world, mosaic: Mosaic, observed: np.ndarray, step_m: float = 1.0) -> float:
-    """The world's km of road times the fraction of its lane centre lines inside the observed
-    area (each road counted once, as world.km_of_road does)."""
-    total, seen = 0, 0
-    for route in world.routes:
-        pts = _resample(np.asarray(route, float), step_m)
-        cr = np.floor(mosaic.to_cells(pts)).astype(np.int64)
-        inside = (cr[:, 0] >= 0) & (cr[:, 1] >= 0) & (cr[:, 0] < mosaic.shape[1]) & (
-            cr[:, 1] < mosaic.shape[0])
-        total += len(pts)
-        seen += int(observed[cr[inside, 1], cr[inside, 0]].sum())
-    return float(world.km_of_road * seen / total) if total else 0.0
+def km_mapped(drives_xy_m: list[np.ndarray]) -> float:
+    """km of road the mapping drives covered, each road counted once (neighbouring lanes and the
+    other direction of a road merge), as the simulator counts world.km_of_road."""
+    from services.sim.routes import km_of_centrelines
 
-
-def _resample(poly: np.ndarray, step_m: float) -> np.ndarray:
-    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    if len(poly) < 2 or s[-1] <= 0:
-        return poly[:1]
-    t = np.arange(0.0, s[-1], step_m)
-    return np.stack([np.interp(t, s, poly[:, 0]), np.interp(t, s, poly[:, 1])], axis=1)
+    return float(km_of_centrelines([np.asarray(d, float) for d in drives_xy_m if len(d) > 1]))
 
 
 # -- localization --------------------------------------------------------------------------------

@@ -323,7 +323,7 @@ class DemoRun:
         return report
 
     def _world_section(self, world, mosaic, observed) -> dict:
-        self.km_mapped = ev.km_mapped(world, mosaic, observed)
+        self.km_mapped = ev.km_mapped([_truth_xy(p.parent) for p in self._logs_mapping_all()])
         return {"name": world.name, "km": round(float(world.km_of_road), 4),
                 "km_mapped": round(self.km_mapped, 4)}
 
@@ -340,8 +340,8 @@ class DemoRun:
             "per_class": per_class,
             "digest": ev.map_digest(t["tiles"], t["raw"]),
             "tiles": len(t["tiles"]), "codecs": t["codecs"], **sizes,
-            "notes": "kb_per_km divides by world.km_mapped (road centre line inside the mapping "
-                     "drives' ROI footprint); recall counts true cells inside that footprint; "
+            "notes": "kb_per_km divides by world.km_mapped (km of road the mapping drives "
+                     "covered, each road once); recall counts true cells inside that footprint; "
                      "raw = sparse grid of 5 bytes per labelled cell; png = one PNG per tile",
         }
 
@@ -439,6 +439,12 @@ class DemoRun:
         figures.trajectory_by_error(raw, mosaic.to_cells, truth[:, :2], est[:, 1:3], pos,
                                     self.out / "trajectory.png")
         figures.error_histograms(errs, self.out / "errors.png")
+
+
+def _truth_xy(log_dir: Path) -> np.ndarray:
+    s = DriveLog(log_dir).streams
+    poses = s.get("truth_pose", s["frame_pose_true"])
+    return poses[np.all(np.isfinite(poses), axis=1), :2]
 
 
 def _paste_within(mosaic, fetched: dict) -> np.ndarray:
