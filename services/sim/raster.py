@@ -39,11 +39,13 @@ class MarkingIndex:
 
 
 class TileCache:
-    """Label tiles (TILE_CELLS square at CELL_M) on the global tile grid, rasterized on demand,
+    """Label tiles (TILE_CELLS square at cell_m) on a global tile grid, rasterized on demand,
     and stitched windows of (2k+1)^2 tiles around a point."""
 
-    def __init__(self, world: World, radius_tiles: int = 2, max_tiles: int = 400):
+    def __init__(self, world: World, radius_tiles: int = 2, max_tiles: int = 400,
+                 cell_m: float = CELL_M):
         self.index = MarkingIndex(world)
+        self.cell_m = cell_m
         self.k = radius_tiles
         self.max_tiles = max_tiles
         self.tiles: dict[tuple[int, int], np.ndarray] = {}
@@ -55,13 +57,14 @@ class TileCache:
         if key not in self.tiles:
             if len(self.tiles) >= self.max_tiles:
                 self.tiles.pop(next(iter(self.tiles)))
-            size = TILE_CELLS * CELL_M
-            self.tiles[key] = self.index.rasterize(tx * size, ty * size, TILE_CELLS, TILE_CELLS)
+            size = TILE_CELLS * self.cell_m
+            self.tiles[key] = self.index.rasterize(tx * size, ty * size, TILE_CELLS, TILE_CELLS,
+                                                   self.cell_m)
         return self.tiles[key]
 
     def window(self, x_m: float, y_m: float):
         """(raster, x0, y0): the tiles around the tile holding (x, y); cached while in that tile."""
-        size = TILE_CELLS * CELL_M
+        size = TILE_CELLS * self.cell_m
         tx, ty = int(np.floor(x_m / size)), int(np.floor(y_m / size))
         if self._window_key != (tx, ty):
             n = 2 * self.k + 1

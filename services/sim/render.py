@@ -16,11 +16,12 @@ import numpy as np
 
 from common.camera import CameraModel, undistort_normalized
 from common.classes import Cls
-from common.grid import CELL_M
+from common.grid import TILE_CELLS
 from common.world import World
 from services.sim.raster import TileCache
 
 SKY_BINS = 3600
+LABEL_CELL_M = 0.05  # label window resolution: finer than the map, so edges are not stair-cased
 
 
 class GroundRays:
@@ -63,9 +64,12 @@ class FrameGeometry:
 class LabelRenderer:
     """True label images: the world's labels seen through the camera (0 above the horizon)."""
 
-    def __init__(self, world: World, camera: CameraModel, radius_tiles: int = 2):
+    def __init__(self, world: World, camera: CameraModel, cell_m: float = LABEL_CELL_M,
+                 range_m: float = 100.0):
         self.rays = GroundRays(camera)
-        self.tiles = TileCache(world, radius_tiles=radius_tiles)
+        radius = int(np.ceil(range_m / (TILE_CELLS * cell_m)))
+        self.tiles = TileCache(world, radius_tiles=radius, cell_m=cell_m)
+        self.cell_m = cell_m
 
     def geometry(self, pose, T_vehicle_camera) -> FrameGeometry:
         gx, gy, dist, ok, rays = self.rays.ground(T_vehicle_camera)
@@ -78,8 +82,9 @@ class LabelRenderer:
         """(labels (H, W) uint8, geometry, window) for a vehicle pose (x, y, yaw)."""
         geo = geo or self.geometry(pose, T_vehicle_camera)
         window, x0, y0 = self.tiles.window(pose[0], pose[1])
-        mx = np.where(geo.ground, (geo.wx - np.float32(x0)) / np.float32(CELL_M) - 0.5, -10.0)
-        my = np.where(geo.ground, (geo.wy - np.float32(y0)) / np.float32(CELL_M) - 0.5, -10.0)
+        inv = np.float32(1.0 / self.cell_m)
+        mx = np.where(geo.ground, (geo.wx - np.float32(x0)) * inv - 0.5, -10.0)
+        my = np.where(geo.ground, (geo.wy - np.float32(y0)) * inv - 0.5, -10.0)
         mx, my = mx.astype(np.float32), my.astype(np.float32)
         lab = cv2.remap(window, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
                         borderValue=0)
@@ -134,9 +139,11 @@ class Appearance:
         g = rng.uniform(75, 125)
         tint = rng.uniform(-6, 6, 3)
         self.asphalt_rgb = np.array([g, g, g + rng.uniform(0, 6)]) + tint
-        self.offroad_rgb = [np.array([70, 105, 55]), np.array([150, 148, 140]),
-                            np.array([120, 100, 75]), np.array([95, 95, 90])][int(rng.integers(4))] \
-            * rng.uniform(0.8, 1.15)
+        grounds = [np.array([70, 105, 55]), np.array([150, 148, 140]), np.array([120, 100, 75]),
+                   np.array([95, 95, 90]), np.array([60, 85, 45])]
+        pick = rng.choice(len(grounds), 2, replace=False)
+        self.offroad_rgb = grounds[pick[0]] * rng.uniform(0.8, 1.15)
+        self.offroad2_rgb = grounds[pick[1]] * rng.uniform(0.8, 1.15)
         self.paint_rgb = np.array([235, 235, 228]) * rng.uniform(0.85, 1.0)
         self.fade = rng.uniform(0.45, 1.0)  # how much of the paint is left
         self.wear_level = rng.uniform(0.0, 0.3)  # worn fraction of paint
@@ -150,17 +157,22 @@ class Appearance:
         self.fog_m = rng.uniform(60.0, 250.0)
         self.blur_prob = rng.uniform(0.0, 0.4)
         self.noise_sigma = rng.uniform(1.5, 7.0)
-        self.tex_fine = _noise_texture(rng, 256, 0.7, 0.82, 1.18)  # 4 cm cells
-        self.tex_coarse = _noise_texture(rng, 256, 6.0, 0.8, 1.2)  # 0.5 m cells
-        self.wear = _noise_texture(rng, 256, 1.5, 0.0, 1.0)  # 5 cm cells
+        # two-channel world-anchored textures: (grain, paint wear) at 4 cm, (blotches, roadside
+        # mix) at 0.5 m
+        self.fine = cv2.merge([_noise_texture(rng, 256, 0.7, 0.82, 1.18),
+                               _noise_texture(rng, 256, 1.5, 0.0, 1.0)])
+        self.coarse = cv2.merge([_noise_texture(rng, 256, 6.0, 0.8, 1.2),
+                                 _noise_texture(rng, 256, 12.0, 0.0, 1.0)])
+        self.curb_rgb = np.array([185, 183, 178]) * rng.uniform(0.8, 1.1)
+        self.curb = rng.random() < 0.7
         self.shadow = _shadow_texture(rng, 512, 0.25, rng.uniform(0.3, 1.5))
         self.skyline_elev = self._skyline(rng)
         palette = np.array([[120, 118, 115], [150, 140, 125], [140, 95, 80], [95, 100, 105],
                             [175, 170, 160], [60, 80, 55], [45, 65, 45], [110, 105, 95]], float)
         self.skyline_rgb = (palette[rng.integers(len(palette), size=64)]
                             * rng.uniform(0.75, 1.2, (64, 1)))
-        for name in ("asphalt_rgb", "offroad_rgb", "paint_rgb", "sky_top", "haze_rgb",
-                     "skyline_rgb"):
+        for name in ("asphalt_rgb", "offroad_rgb", "offroad2_rgb", "paint_rgb", "sky_top",
+                     "haze_rgb", "skyline_rgb", "curb_rgb"):
             setattr(self, name, (getattr(self, name) * self.colour_cast).astype(np.float32))
 
     @staticmethod
@@ -191,19 +203,23 @@ class FrameRenderer:
         yy, xx = np.mgrid[0:self.h, 0:self.w].astype(np.float32)
         r2 = ((xx - self.w / 2) / self.w) ** 2 + ((yy - self.h / 2) / self.h) ** 2
         self.vignette = cv2.merge([(1.0 - 0.35 * r2).astype(np.float32)] * 3)
-        self._paint_cache = None
+        self._surface_cache = None
         self.noise = [self.rng.normal(0, self.look.noise_sigma, (self.h, self.w, 3)).astype(np.float32)
                       for _ in range(4)]
 
-    def _paint_window(self, window):
-        """Road and paint masks of the label window (uint8, for linear interpolation)."""
-        if self._paint_cache is None or self._paint_cache[0] is not window:
+    def _surface_window(self, window):
+        """(road, paint, curb) masks of the label window as one 3-channel uint8 image, so that a
+        single linear remap samples all three. Paint is softened to hide the cell steps."""
+        if self._surface_cache is None or self._surface_cache[0] is not window:
             road = (window >= Cls.ROAD).astype(np.uint8) * 255
-            paint = (window >= Cls.LANE_LINE).astype(np.uint8) * 255
-            # soften the 0.1 m cell steps; _ground re-sharpens around the half level
-            paint = cv2.GaussianBlur(paint, (0, 0), 0.6)
-            self._paint_cache = (window, road, paint)
-        return self._paint_cache[1], self._paint_cache[2]
+            paint = cv2.GaussianBlur((window >= Cls.LANE_LINE).astype(np.uint8) * 255, (0, 0), 0.6)
+            if self.look.curb:
+                kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))  # ~0.15 m at 5 cm
+                curb = cv2.dilate(road, kernel) - road
+            else:
+                curb = np.zeros_like(road)
+            self._surface_cache = (window, cv2.merge([road, paint, curb]))
+        return self._surface_cache[1]
 
     def labels(self, pose, T_vehicle_camera, vehicles=()) -> np.ndarray:
         lab, geo, _ = self.labeler.labels(pose, T_vehicle_camera)
@@ -230,28 +246,33 @@ class FrameRenderer:
         return cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
 
     def _ground(self, geo, window, mx, my, t_s):
-        """Asphalt / roadside with texture, worn paint, shadows, lighting and haze (H, W, 3)."""
+        """Asphalt / roadside with texture, curbs, worn paint, shadows, lighting and haze, as
+        three (H, W) colour planes."""
         look = self.look
-        road_w, paint_w = self._paint_window(window)
-        road = cv2.remap(road_w, mx, my, cv2.INTER_LINEAR).astype(np.float32) * np.float32(1 / 255)
-        paint = cv2.remap(paint_w, mx, my, cv2.INTER_LINEAR).astype(np.float32)
-        paint = np.clip((paint - 70.0) * np.float32(1 / 115), 0.0, 1.0)  # sharpen the blurred mask
+        surf = cv2.remap(self._surface_window(window), mx, my, cv2.INTER_LINEAR)
+        road, paint, curb = (c.astype(np.float32) * np.float32(1 / 255) for c in cv2.split(surf))
+        paint = np.clip((paint - 0.27) * np.float32(1 / 0.45), 0.0, 1.0)  # re-sharpen
         wx, wy = geo.wx, geo.wy
-        fine = self._remap_wrap(look.tex_fine, wx, wy, 0.04)
+        grain, wear = cv2.split(self._remap_wrap(look.fine, wx, wy, 0.04))
+        blotch, mix = cv2.split(self._remap_wrap(look.coarse, wx, wy, 0.5))
         near = np.clip(1.0 - geo.dist * np.float32(1 / 40.0), 0.0, 1.0)
-        tex = (1.0 + (fine - 1.0) * near) * self._remap_wrap(look.tex_coarse, wx, wy, 0.5)
-        wear = self._remap_wrap(look.wear, wx, wy, 0.05)
+        tex = (1.0 + (grain - 1.0) * near) * blotch
         paint *= np.clip((wear - look.wear_level) * 4.0, 0.0, 1.0) * np.float32(look.fade)
+        mix = np.clip((mix - 0.5) * 4.0 + 0.5, 0.0, 1.0)  # patches of the second roadside
         gain = np.float32(look.gain * (1.0 + look.gain_wobble * math.sin(0.07 * t_s)))
         shade = (1.0 - look.shadow_strength * self._remap_wrap(look.shadow, wx, wy, 0.25)) * gain
         fog = np.clip(geo.dist * np.float32(1.0 / look.fog_m), 0.0, 1.0) ** 1.5
         keep = shade * (1.0 - fog)
         a = tex * keep * (1.0 - paint)
         b = paint * keep
+        off = 1.0 - road - curb
         # per colour plane: (H, W) x scalar ops are far cheaper than (H, W, 1) x (3,) broadcasts
-        off, d = look.offroad_rgb, look.asphalt_rgb - look.offroad_rgb
-        return [(off[c] + d[c] * road) * a + look.paint_rgb[c] * b + look.haze_rgb[c] * fog
-                for c in range(3)]
+        planes = []
+        for c in range(3):
+            ground = (off * (look.offroad_rgb[c] + (look.offroad2_rgb[c] - look.offroad_rgb[c]) * mix)
+                      + road * look.asphalt_rgb[c] + curb * look.curb_rgb[c])
+            planes.append(ground * a + look.paint_rgb[c] * b + look.haze_rgb[c] * fog)
+        return planes
 
     def _sky(self, planes, geo, pose):
         """Sky gradient and a world-fixed skyline (buildings, trees) where no ground is seen;

@@ -158,7 +158,7 @@ def _other_vehicles(traj: motion.Trajectory, rng):
                                   _car_colour(rng)))
     xy_parked = np.array([[p.x, p.y] for p in parked]).reshape(-1, 2)
     lead_on = rng.random(int(traj.duration_s / 10.0) + 2) < 0.35  # lead car present per 10 s
-    lead_gap = rng.uniform(9.0, 30.0, len(lead_on))
+    lead_gap = rng.uniform(10.0, 30.0, len(lead_on))
     lead_col = _car_colour(rng)
 
     def visible(t: float) -> list:
@@ -166,9 +166,12 @@ def _other_vehicles(traj: motion.Trajectory, rng):
         out = [parked[i] for i in np.flatnonzero(np.hypot(xy_parked[:, 0] - x,
                                                           xy_parked[:, 1] - y) < 60.0)]
         k = int(t / 10.0)
-        if lead_on[k]:
-            gap = lead_gap[k] + 3.0 * math.sin(0.5 * t)
-            out.append(Vehicle(gap, 0.0, 0.0, 4.4, 1.8, 1.5, lead_col, relative=True))
+        if lead_on[k]:  # the lead car drives our path, gap metres ahead
+            at = np.interp(t, traj.t_s, s) + lead_gap[k] + 3.0 * math.sin(0.5 * t)
+            if at < s[-1]:
+                lx, ly = np.interp(at, s, traj.xy[:, 0]), np.interp(at, s, traj.xy[:, 1])
+                out.append(Vehicle(lx, ly, float(np.interp(at, s, traj.yaw)), 4.4, 1.8, 1.5,
+                                   lead_col))
         return out
 
     return visible
