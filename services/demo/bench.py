@@ -45,18 +45,32 @@ def run_one(name: str, quick: bool, bench_dir: Path = BENCH_DIR) -> dict:
 
 
 def merge_results(runs: dict[str, dict]) -> dict:
-    """Contract sections from the benchmarks' dicts: a benchmark may return the sections
-    directly ({"stages": {...}, "merge": {...}}) or flat stage entries (merged into stages)."""
+    """Contract sections from the benchmarks' dicts: a benchmark returns the sections directly
+    ({"stages": {...}, "merge": {...}}), or one flat dict that becomes stages[<its name>]."""
     out = {s: {} for s in SECTIONS}
-    for run in runs.values():
+    for name, run in runs.items():
         if not run["ok"]:
             continue
-        for key, value in run["result"].items():
+        result = run["result"]
+        if not any(k in SECTIONS for k in result):
+            out["stages"][name] = _latency_entry(result)
+            continue
+        for key, value in result.items():
             if key in SECTIONS and isinstance(value, dict):
                 out[key].update(value)
-            else:
-                out["stages"][key] = value
     return out
+
+
+def _latency_entry(result: dict) -> dict:
+    """A flat result with ms_p50/ms_p95 (e.g. segmentation) as {p50_ms, p95_ms, per_s, ...}."""
+    p50 = result.get("p50_ms", result.get("ms_p50"))
+    p95 = result.get("p95_ms", result.get("ms_p95"))
+    entry = {"p50_ms": p50, "p95_ms": p95,
+             "per_s": round(1000.0 / p50, 2) if isinstance(p50, int | float) and p50 > 0 else None}
+    for key in ("model", "iou", "iou_roi"):
+        if key in result:
+            entry[key] = result[key]
+    return entry
 
 
 def environment() -> dict:

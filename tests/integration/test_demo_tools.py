@@ -1,0 +1,61 @@
+"""The demo's tools without the fleet: process supervisor (kill, restart, clean stop), the bench
+runner's tolerance of a missing or failing benchmark, and the map digest."""
+
+import os
+import time
+
+import numpy as np
+import pytest
+
+from services.demo import bench
+from services.demo import evaluate as ev
+from services.demo.fetch import run_fetch
+from services.demo.procs import Supervisor, cli_argv
+
+pytestmark = pytest.mark.integration
+
+
+def _gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    return False
+
+
+def test_supervisor_kill_restart_and_clean_stop(tmp_path):
+    with Supervisor(tmp_path / "logs") as sup:
+        endpoint = sup.start_router()
+        first = sup.procs["router"].pid
+        sup.kill("router")
+        assert _gone(first)
+        sup.restart("router")
+        stats = run_fetch(endpoint, "stats", shards=1)  # nobody serves stats: None, no hang
+        assert stats == {"s0": None}
+        second = sup.procs["router"].pid
+        sup.start("sleeper", cli_argv("router", "--listen", "tcp/127.0.0.1:1"))  # to be stopped
+    for pid in (second, sup.procs["sleeper"].pid):
+        for _ in range(50):
+            if _gone(pid) or open(f"/proc/{pid}/stat").read().split()[2] == "Z":
+                break
+            time.sleep(0.1)
+        else:
+            pytest.fail(f"pid {pid} still running after close()")
+    assert [e["event"] for e in sup.procs["router"].history] == ["start", "SIGKILL", "start"]
+
+
+def test_bench_records_missing_and_failing_benchmarks(tmp_path):
+    (tmp_path / "bench_ok.py").write_text("def run(quick):\n    return {'stages': {'x': {'p50_ms': 1.0}}}\n")
+    (tmp_path / "bench_bad.py").write_text("def run(quick):\n    raise RuntimeError('boom')\n")
+    out = bench.run_all(True, names=("ok", "bad", "absent"), bench_dir=tmp_path)
+    assert out["stages"] == {"x": {"p50_ms": 1.0}}
+    assert out["benchmarks"]["ok"]["ok"] and not out["benchmarks"]["bad"]["ok"]
+    assert "boom" in out["benchmarks"]["bad"]["error"]
+    assert "does not exist" in out["benchmarks"]["absent"]["error"]
+    assert out["cores"] == os.cpu_count()
+
+
+def test_map_digest_depends_on_content_not_order():
+    a, b = np.zeros((512, 512), np.uint8), np.ones((512, 512), np.uint8)
+    assert ev.map_digest([(0, 0), (1, -1)], [a, b]) == ev.map_digest([(1, -1), (0, 0)], [b, a])
+    assert ev.map_digest([(0, 0), (1, -1)], [a, b]) != ev.map_digest([(0, 0), (1, -1)], [b, a])
