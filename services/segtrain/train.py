@@ -23,7 +23,7 @@ logger = logging.getLogger(__name__)
 
 INPUT_SIZE = (320, 176)  # (W, H) of the model input
 CROP_HW = (128, 224)  # training crops (H, W) from the model-size frames
-BATCH = 12
+BATCH = 8
 LR_MAX = 6e-3
 THREADS = 2
 

@@ -86,3 +86,14 @@ def test_twinlitenet_finds_lane_lines_in_the_lower_half_of_a_real_frame(shared_d
     assert len(near) > 1000
     assert np.all(near[:, 0] > 3.0)
     assert np.median(np.abs(near[:, 1])) < 6.0
+
+
+@needs_model
+def test_bilinear_upsampling_agrees_with_nearest_on_most_pixels(rng):
+    image = rng.integers(0, 255, (360, 640, 3), dtype=np.uint8)
+    nearest = OnnxSegmenter().segment(image)
+    smooth = OnnxSegmenter(upsample="bilinear").segment(image)
+    assert smooth.shape == nearest.shape and smooth.dtype == np.uint8
+    assert (smooth == nearest).mean() > 0.9
+    with pytest.raises(ConfigError):
+        OnnxSegmenter(upsample="cubic")
