@@ -150,3 +150,19 @@ def test_raw_decode_rejects_bad_input():
     for data in (b"", b"junk", zlib.compress(b"\x00" * 100), zlib.compress(b"\x09" * 512 * 512)):
         with pytest.raises(CodecError):
             decode_raw(data)
+
+
+def test_noisy_merged_like_tile_keeps_fidelity_and_stripes(tile_labels, rng):
+    import cv2
+
+    noisy = tile_labels.copy()
+    paint = tile_labels >= 2
+    grown = cv2.dilate(tile_labels * paint, np.ones((3, 3), np.uint8))
+    grow = (grown >= 2) & ~paint & (tile_labels == 1) & (rng.random(paint.shape) < 0.15)
+    noisy[grow] = grown[grow]
+    decoded = decode_tile(encode_tile(noisy))
+    for name, pr in per_class_precision_recall(decoded, noisy, tol_cells=1).items():
+        assert pr["precision"] >= 0.97 and pr["recall"] >= 0.97, name
+    stripes = cv2.connectedComponents((tile_labels == Cls.CROSSWALK).astype(np.uint8), connectivity=4)[0]
+    kept = cv2.connectedComponents((decoded == Cls.CROSSWALK).astype(np.uint8), connectivity=4)[0]
+    assert kept >= stripes - 2  # zebra stripes are not merged into one blob
