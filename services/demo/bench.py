@@ -41,7 +41,8 @@ def run_one(name: str, quick: bool, bench_dir: Path = BENCH_DIR) -> dict:
     except Exception as exc:  # noqa: BLE001 -- one failing benchmark must not stop the others
         logger.warning("bench_%s failed: %s", name, exc)
         return {"ok": False, "error": f"{type(exc).__name__}: {exc}",
-                "traceback": traceback.format_exc()[-2000:], "wall_s": round(time.monotonic() - t, 2)}
+                "traceback": traceback.format_exc()[-2000:],
+                "wall_s": round(time.monotonic() - t, 2)}
 
 
 def merge_results(runs: dict[str, dict]) -> dict:
@@ -90,7 +91,8 @@ def run_all(quick: bool, names=BENCHMARKS, bench_dir: Path = BENCH_DIR) -> dict:
         logger.info("bench_%s ...", name)
         runs[name] = run_one(name, quick, bench_dir)
     return {**environment(), "quick": quick, **merge_results(runs),
-            "benchmarks": {n: {k: v for k, v in r.items() if k != "result"} for n, r in runs.items()},
+            "benchmarks": {n: {k: v for k, v in r.items() if k != "result"}
+                           for n, r in runs.items()},
             "raw": {n: r.get("result") for n, r in runs.items()}}
 
 

@@ -153,7 +153,8 @@ def run_fetch(endpoint: str, what: str, shards: int, out: Path | None = None,
         res = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s,
                              stdin=subprocess.DEVNULL)
     except subprocess.TimeoutExpired as exc:
-        raise TransportError(f"fetching {what} from the shards timed out ({timeout_s:.0f} s)") from exc
+        raise TransportError(f"fetching {what} from the shards timed out "
+                             f"({timeout_s:.0f} s)") from exc
     if res.returncode != 0:
         raise TransportError(f"fetching {what} from the shards failed:\n{res.stderr[-3000:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])

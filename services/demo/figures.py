@@ -57,7 +57,8 @@ def side_by_side(panels: list[tuple[str, np.ndarray]], path, window=(300, 500), 
 
 
 def trajectory_by_error(labels: np.ndarray, to_cells, truth_xy: np.ndarray, est_xy: np.ndarray,
-                        err_m: np.ndarray, path, max_err_m: float = 0.5, margin_m: float = 15.0) -> None:
+                        err_m: np.ndarray, path, max_err_m: float = 0.5,
+                        margin_m: float = 15.0) -> None:
     """Map (dimmed) with the true path (grey) and the estimates coloured by error (JET, 0 to
     max_err_m). `to_cells` maps world (N, 2) -> mosaic (col, row)."""
     pts = np.vstack([truth_xy, est_xy])
@@ -127,8 +128,8 @@ def _histogram(values: np.ndarray, title: str, bins: int, w: int = 420, h: int =
                             (np.percentile(values, 90), "p90", (0, 140, 0))):
         u = int(x0 + (x1 - x0) * min(val / top, 1.0))
         cv2.line(img, (u, y0), (u, y1), col, 1)
-        cv2.putText(img, f"{label} {val:.3f}", (min(u + 3, x1 - 90), y0 + (14 if label == "mean" else 30)),
-                    FONT, 0.4, col, 1, cv2.LINE_AA)
+        at = (min(u + 3, x1 - 90), y0 + (14 if label == "mean" else 30))
+        cv2.putText(img, f"{label} {val:.3f}", at, FONT, 0.4, col, 1, cv2.LINE_AA)
     for k in range(5):
         v = top * k / 4
         u = int(x0 + (x1 - x0) * k / 4)

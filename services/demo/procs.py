@@ -131,7 +131,8 @@ class Supervisor:
 
     def close(self) -> None:
         """Stop every process: clients first, the router last (so clients close cleanly)."""
-        names = [n for n in self.procs if n != "router"] + (["router"] if "router" in self.procs else [])
+        names = [n for n in self.procs if n != "router"]
+        names += ["router"] if "router" in self.procs else []
         running = [n for n in names if self.procs[n].running()]
         for n in running:
             if n != "router":

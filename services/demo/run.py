@@ -77,8 +77,10 @@ class DemoRun:
             else:
                 self.step("map (vehicles upload)", self._map, sup, logs["mapping"])
                 update = None
-            stats = self.step("fetch stats and tiles", self._fetch, sup, self.out / "run" / "tiles.npz")
-            loc = self.step("localize the production drive", self._localize, sup, logs["production"])
+            tiles_path = self.out / "run" / "tiles.npz"
+            stats = self.step("fetch stats and tiles", self._fetch, sup, tiles_path)
+            loc = self.step("localize the production drive", self._localize, sup,
+                            logs["production"])
         report = self.step("evaluate", self._evaluate, stats, loc, logs, update)
         report["timings"] = {"wall_s": round(time.monotonic() - self.t0, 2),
                              "per_stage_ms": {**self.stage_ms, "vehicle": self._vehicle_stage_ms()}}
@@ -174,7 +176,8 @@ class DemoRun:
                     pending.remove(n)
                     logger.info("%s done (%d left)", n, len(pending))
             if time.monotonic() > deadline:
-                raise ProcessError(f"vehicles {pending} not done after {self.d.vehicle_timeout_s} s")
+                raise ProcessError(f"vehicles {pending} not done after "
+                                   f"{self.d.vehicle_timeout_s} s")
             time.sleep(0.2)
 
     def _read_summary(self, name: str) -> dict:
@@ -189,7 +192,8 @@ class DemoRun:
         shard = self._busiest_shard(logs)
         state = self.out / "run" / vehicle
         deadline = time.monotonic() + 120.0
-        while not _has_files(state) and sup.procs[vehicle].running() and time.monotonic() < deadline:
+        while (not _has_files(state) and sup.procs[vehicle].running()
+               and time.monotonic() < deadline):
             time.sleep(0.1)
         time.sleep(self.d.chaos_after_s)
         if not sup.procs[vehicle].running():
@@ -265,7 +269,8 @@ class DemoRun:
         snapshots.append(("new paint (ground truth)", new_truth))
         figures.repaint_strip(snapshots, masks[0] | masks[1], self.out / "repaint.png")
         return {"traversals_to_follow": followed_at, "traversals_before": len(logs["mapping"]),
-                "repainted_cells": {"old_only": int(masks[0].sum()), "new_only": int(masks[1].sum())},
+                "repainted_cells": {"old_only": int(masks[0].sum()),
+                                    "new_only": int(masks[1].sum())},
                 "history": history, "rule": {"new_shown_min": ev.FOLLOW_NEW_MIN,
                                              "old_shown_max": ev.FOLLOW_OLD_MAX}}
 
@@ -295,7 +300,8 @@ class DemoRun:
         poses = [DriveLog(p.parent if p.name == "log.json" else p).streams["frame_pose_true"]
                  for p in log_jsons]
         roi = self.cfg.roi
-        return ev.roi_footprint(mosaic, np.concatenate(poses), roi.x_min_m, roi.length_m, roi.width_m)
+        return ev.roi_footprint(mosaic, np.concatenate(poses), roi.x_min_m, roi.length_m,
+                                roi.width_m)
 
     def _evaluate(self, stats: dict, loc: dict, logs: dict, update: dict | None) -> dict:
         contours = _require("common.contours", "the tile codec (common.contours)")
@@ -309,7 +315,7 @@ class DemoRun:
         truth = ev.truth_mosaic(world, mosaic, t["tiles"])
         observed = self._observed(mosaic, self._logs_mapping_all())
         report = {
-            "world": self._world_section(world, mosaic, observed),
+            "world": self._world_section(world),
             "map": self._map_section(t, raw, decoded, truth, observed),
             "segmentation": self._segmentation(logs["production"]),
             "mapping": self._mapping_section(),
@@ -322,7 +328,7 @@ class DemoRun:
         self._figures(mosaic, raw, decoded, truth, logs["production"])
         return report
 
-    def _world_section(self, world, mosaic, observed) -> dict:
+    def _world_section(self, world) -> dict:
         self.km_mapped = ev.km_mapped([_truth_xy(p.parent) for p in self._logs_mapping_all()])
         return {"name": world.name, "km": round(float(world.km_of_road), 4),
                 "km_mapped": round(self.km_mapped, 4)}
@@ -362,7 +368,8 @@ class DemoRun:
                 union[c] += np.sum((pred == c) | (truth == c))
         names = {2: "lane_line", 3: "stop_line", 4: "crosswalk", 5: "ground_sign"}
         return {"model": getattr(seg, "name", self.d.segmenter),
-                "iou": {n: (float(inter[c] / union[c]) if union[c] else None) for c, n in names.items()},
+                "iou": {n: (float(inter[c] / union[c]) if union[c] else None)
+                        for c, n in names.items()},
                 "ms_p50": float(np.percentile(ms, 50)) if ms else None,
                 "ms_p95": float(np.percentile(ms, 95)) if ms else None,
                 "frames": len(ms)}
@@ -380,7 +387,8 @@ class DemoRun:
             return {"mean": sum(r["mean"] * f for r, f in rows) / w,
                     "max": max(r.get("max") or 0.0 for r, _ in rows)}
 
-        return {"pose_error_m": agg("pose_error_m"), "outage_pose_error_m": agg("outage_pose_error_m"),
+        return {"pose_error_m": agg("pose_error_m"),
+                "outage_pose_error_m": agg("outage_pose_error_m"),
                 "odometry_only_error_m": agg("odometry_only_error_m"), "frames": sum(frames),
                 "vehicles": len(s), "segmenter": self.d.segmenter}
 
@@ -395,7 +403,8 @@ class DemoRun:
             "errors": sum(int(c.get("errors", 0)) for c in shards)
             + sum(int(x.get("errors", 0)) for x in v),
             "vehicle_duplicates": sum(int(x.get("duplicates", 0)) for x in v),
-            "shards": {k: {n: c.get(n) for n in ("patches_applied", "duplicates", "errors", "tiles")}
+            "shards": {k: {n: c.get(n) for n in
+                           ("patches_applied", "duplicates", "errors", "tiles", "digest")}
                        for k, c in stats.items() if c},
         }
 
@@ -474,23 +483,27 @@ def format_table(report: dict) -> str:
     lines = [f"RoadMap demo: world {report['world']['name']} ({report['world']['km_mapped']:.2f} "
              f"km mapped), wall {report['timings']['wall_s']:.0f} s",
              f"{'':22s}{'ours mean':>10s}{'ours p90':>10s}{'paper mean':>12s}{'paper p90':>11s}"]
-    for key, label in (("x_m", "x error [m]"), ("y_m", "y error [m]"), ("yaw_deg", "yaw error [deg]")):
+    rows = (("x_m", "x error [m]"), ("y_m", "y error [m]"), ("yaw_deg", "yaw error [deg]"))
+    for key, label in rows:
         ours, paper = loc.get(key) or {}, ev.PAPER[key]
         lines.append(f"{label:22s}{_f(ours.get('mean')):>10s}{_f(ours.get('p90')):>10s}"
                      f"{paper['mean']:>12.3f}{paper['p90']:>11.3f}")
     for key, label in (("lateral_m", "lateral [m]"), ("longitudinal_m", "longitudinal [m]")):
         ours = loc.get(key) or {}
         lines.append(f"{label:22s}{_f(ours.get('mean')):>10s}{_f(ours.get('p90')):>10s}")
-    lines.append(f"{'map size [KB/km]':22s}{m['kb_per_km']:>10.1f}{'':10s}{ev.PAPER['kb_per_km']:>12.1f}"
+    lines.append(f"{'map size [KB/km]':22s}{m['kb_per_km']:>10.1f}{'':10s}"
+                 f"{ev.PAPER['kb_per_km']:>12.1f}"
                  f"   (raw grid {m['raw_kb_per_km']:.0f}, PNG {m['png_kb_per_km']:.0f})")
     for name, c in m["per_class"].items():
         lines.append(f"  {name:20s}precision {_f(c['precision'], '{:.2f}')}  recall "
-                     f"{_f(c['recall'], '{:.2f}')}  codec P/R {_f(c.get('codec_precision'), '{:.2f}')}"
+                     f"{_f(c['recall'], '{:.2f}')}  codec P/R "
+                     f"{_f(c.get('codec_precision'), '{:.2f}')}"
                      f"/{_f(c.get('codec_recall'), '{:.2f}')}")
     lines.append(f"pipeline: sent {p['patches_sent']} acked {p['patches_acked']} applied "
                  f"{p['patches_applied']} duplicates {p['duplicates']} errors {p['errors']}")
     if "update" in report:
-        lines.append(f"repaint: map followed after {report['update']['traversals_to_follow']} traversals")
+        n = report["update"]["traversals_to_follow"]
+        lines.append(f"repaint: map followed after {n} traversals")
     lines.append(f"map digest {m['digest'][:16]}...  availability(0.5 m) "
                  f"{_f(loc.get('availability_0_5m'), '{:.2f}')}")
     return "\n".join(lines) + "\n"

@@ -45,7 +45,8 @@ def test_supervisor_kill_restart_and_clean_stop(tmp_path):
 
 
 def test_bench_records_missing_and_failing_benchmarks(tmp_path):
-    (tmp_path / "bench_ok.py").write_text("def run(quick):\n    return {'stages': {'x': {'p50_ms': 1.0}}}\n")
+    (tmp_path / "bench_ok.py").write_text(
+        "def run(quick):\n    return {'stages': {'x': {'p50_ms': 1.0}}}\n")
     (tmp_path / "bench_bad.py").write_text("def run(quick):\n    raise RuntimeError('boom')\n")
     out = bench.run_all(True, names=("ok", "bad", "absent"), bench_dir=tmp_path)
     assert out["stages"] == {"x": {"p50_ms": 1.0}}
