@@ -114,10 +114,22 @@ def km_of_centrelines(lanes: list[np.ndarray], *, merge_m: float = 4.5, step_m: 
 
 def blocked_zone_along(route: np.ndarray, *, start_m: float = 250.0, length_m: float = 300.0,
                        width_m: float = 30.0, piece_m: float = 25.0) -> list[np.ndarray]:
-    """GNSS-blocked zone: buffers (as short pieces, so curves stay simple) around length_m of
-    route from start_m on (drives start with a fix, then lose it)."""
+    """GNSS-blocked zone: buffers (short pieces, so curves stay simple) around length_m of route,
+    starting at or after start_m (drives start with a fix), where the route passes only once
+    (a route that comes back along the same road would otherwise lose GNSS twice)."""
     s = paint.arc_length(route)
-    a = min(start_m, max(s[-1] - length_m, 0.0))
+    step = 5.0
+    samples = paint.resample(route, step)
+    best = None
+    for a in np.arange(min(start_m, max(s[-1] - length_m, 0.0)), max(s[-1] - length_m, 0.0) + 1, 50.0):
+        axis = paint.resample(paint.sub_polyline(route, s, a, min(a + length_m, s[-1])), step)
+        d2 = np.min(np.sum((samples[:, None] - axis[None]) ** 2, axis=2), axis=1)
+        inside_m = step * np.count_nonzero(d2 < (width_m / 2) ** 2)
+        if best is None or inside_m < best[0] - 20.0:
+            best = (inside_m, a)
+        if inside_m <= 1.5 * length_m:
+            break
+    a = best[1]
     b = min(a + length_m, s[-1])
     out = []
     while a < b - 1e-6:

@@ -14,7 +14,7 @@ from common.config import CameraConfig
 from common.drivelog import DriveLogMeta, DriveLogWriter
 from common.errors import WorldError
 from common.world import World
-from services.sim import motion, sensors
+from services.sim import motion, paint, sensors
 from services.sim.render import FrameRenderer, Vehicle
 
 logger = logging.getLogger(__name__)
@@ -77,10 +77,15 @@ def _route_for(world: World, vehicle: int, route) -> np.ndarray:
         raise WorldError(f"world {world.name} has no routes")
     if route is not None:
         return world.routes[int(route) % len(world.routes)]
-    first = world.routes[0]
-    variants = [r for r in world.routes if np.linalg.norm(r[0] - first[0]) < 8.0
-                and np.linalg.norm(r[min(40, len(r) - 1)] - first[min(40, len(first) - 1)]) < 8.0]
+    first = paint.resample(world.routes[0], 2.0)[:200]
+    variants = [r for r in world.routes if _follows(paint.resample(r, 2.0)[:200], first)]
     return variants[vehicle % len(variants)]
+
+
+def _follows(a: np.ndarray, b: np.ndarray, tol_m: float = 8.0) -> bool:
+    """Two routes run side by side (another lane of the same roads) over their first 400 m."""
+    n = min(len(a), len(b))
+    return n > 10 and float(np.median(np.linalg.norm(a[:n] - b[:n], axis=1))) < tol_m
 
 
 def simulate_drive(world: World, root: Path, *, vehicle: str, traversal: str,
