@@ -31,13 +31,14 @@ import numpy as np
 
 from common.classes import NUM_CLASSES
 from common.contours import CODEC, encode_tile
-from common.errors import TileError
+from common.errors import ConfigError, TileError
 from common.grid import CELLS_PER_TILE, TILE_CELLS
 from common.messages import ACCEPTED, DUPLICATE, GridPatch
 
 WINDOW_TRAVERSALS = 5
 MIN_VOTES = 2
-VOTE_CAP = 1 << 28  # per traversal and cell: window sums stay far below 2^32
+VOTE_CAP = 1 << 24  # per traversal and cell: window sums (window < 256) stay below 2^32
+BALLOT = np.uint64(1 << 32)
 
 TileId = tuple[int, int]
 
@@ -65,23 +66,19 @@ class _Traversal:
         return self._ballots
 
     def _summed(self) -> tuple[np.ndarray, np.ndarray]:
-        """Sum the pieces per cell: unique cells from a hit mask, a lookup table to compact
-        indices, then one bincount per class (exact: float64 holds integer sums < 2^53)."""
+        """Sum the pieces per cell: unique cells from a hit mask, a lookup table to compact rows,
+        then one row-add per piece (a patch's cells are unique, so no scatter conflicts)."""
         if len(self.pieces) > 1:
-            cells = np.concatenate([c for c, _ in self.pieces])
-            votes = np.concatenate([v for _, v in self.pieces])
             hit = np.zeros(CELLS_PER_TILE, dtype=bool)
-            hit[cells] = True
+            for cells, _ in self.pieces:
+                hit[cells] = True
             unique = np.flatnonzero(hit)
-            lut = np.empty(CELLS_PER_TILE, dtype=np.intp)
-            lut[unique] = np.arange(len(unique))
-            inverse = lut[cells]
-            sums = np.empty((NUM_CLASSES, len(unique)), dtype=np.uint32)  # class-major
-            for c in range(NUM_CLASSES):
-                col = np.bincount(inverse, weights=votes[:, c], minlength=len(unique))
-                np.minimum(col, VOTE_CAP, out=col)
-                sums[c] = col
-            self.pieces = [(unique.astype(np.uint32), sums.T)]
+            lut = np.empty(CELLS_PER_TILE, dtype=np.int32)
+            lut[unique] = np.arange(len(unique), dtype=np.int32)
+            sums = np.zeros((len(unique), NUM_CLASSES), dtype=np.uint32)
+            for cells, votes in self.pieces:
+                sums[lut[cells]] += votes
+            self.pieces = [(unique.astype(np.uint32), sums)]
         return self.pieces[0]
 
 
@@ -130,6 +127,8 @@ class MergerShard:
         max_batch_cells: int = 4_000_000,
     ):
         self.owns = owns
+        if not 1 <= window_traversals < 256 or min_votes < 1:
+            raise ConfigError("merger.window_traversals must be in [1, 256), min_votes >= 1")
         self.window = int(window_traversals)
         self.min_votes = int(min_votes)
         self.max_batch_patches = int(max_batch_patches)
@@ -252,8 +251,9 @@ def tile_labels(
 
     Dense per-tile accumulators; traversals are visited newest first and each cell stops taking
     observations once it has `window` of them, so no per-cell sort is needed."""
-    ballots = np.zeros(CELLS_PER_TILE * NUM_CLASSES, dtype=np.uint16)
-    vsum = np.zeros(CELLS_PER_TILE * NUM_CLASSES, dtype=np.uint32)
+    # per (cell, class): ballots in the high 32 bits, the votes behind them in the low 32 bits,
+    # so one integer add counts both and an argmax ranks by ballots, then votes
+    packed = np.zeros(CELLS_PER_TILE * NUM_CLASSES, dtype=np.uint64)
     seen = np.zeros(CELLS_PER_TILE, dtype=np.uint16)  # observations taken per cell
     # 1. most recent first, by the traversals' own time then id (arrival order never matters)
     order = sorted(traversals, key=lambda kv: (kv[1].t_first_ns, kv[0]), reverse=True)
@@ -263,14 +263,12 @@ def tile_labels(
             fresh = seen[cells] < window
             cells, ballot, weight = cells[fresh], ballot[fresh], weight[fresh]
         seen[cells] += 1
-        key = cells.astype(np.intp) * NUM_CLASSES + ballot
-        ballots[key] += 1
-        vsum[key] += weight
+        packed[cells.astype(np.intp) * NUM_CLASSES + ballot] += weight.astype(np.uint64) + BALLOT
     observed = np.flatnonzero(seen)
-    b = ballots.reshape(-1, NUM_CLASSES)[observed].astype(np.int64)
-    v = vsum.reshape(-1, NUM_CLASSES)[observed]
-    winner = np.argmax((b << 32) | v, axis=1)
-    winner[v[np.arange(len(observed)), winner] < min_votes] = 0
+    scores = packed.reshape(-1, NUM_CLASSES)[observed]
+    winner = np.argmax(scores, axis=1)
+    votes = scores[np.arange(len(observed)), winner] & np.uint64(BALLOT - 1)
+    winner[votes < min_votes] = 0
     labels = np.zeros(CELLS_PER_TILE, dtype=np.uint8)
     labels[observed] = winner
     return labels.reshape(TILE_CELLS, TILE_CELLS)
