@@ -9,7 +9,8 @@ import numpy as np
 
 from common.classes import Cls
 from common.errors import WorldError
-from common.geometry import quat_wxyz_to_rot
+from common.camera import CameraModel
+from common.geometry import quat_wxyz_to_rot, se3
 from common.world import Marking, World
 from services.sim import paint, routes
 
@@ -41,6 +42,31 @@ def load_ego_poses(log_dir) -> tuple[np.ndarray, np.ndarray]:
     order = np.argsort(t)
     yaw = np.array([np.arctan2(R[1, 0], R[0, 0]) for R in map(quat_wxyz_to_rot, data[:, 1:5])])
     return t[order], np.stack([data[:, 5], data[:, 6], yaw], axis=1)[order]
+
+
+def av2_camera(log_dir, sensor: str = "ring_front_center", scale: float = 1.0) -> CameraModel:
+    """A real Argoverse 2 camera (intrinsics, k1 k2 k3 radial distortion, extrinsics) from a log's
+    calibration/ folder; `scale` resizes the image (e.g. 0.25 for a quarter-size camera)."""
+    cal = Path(log_dir) / "calibration"
+    try:
+        intr = _csv_row(cal / "intrinsics.csv", sensor)
+        extr = _csv_row(cal / "egovehicle_SE3_sensor.csv", sensor)
+    except (OSError, KeyError, ValueError) as exc:
+        raise WorldError(f"{cal}: no calibration for {sensor} ({exc})") from exc
+    K = np.array([[float(intr["fx_px"]) * scale, 0.0, float(intr["cx_px"]) * scale],
+                  [0.0, float(intr["fy_px"]) * scale, float(intr["cy_px"]) * scale],
+                  [0.0, 0.0, 1.0]])
+    dist = np.array([float(intr["k1"]), float(intr["k2"]), 0.0, 0.0, float(intr["k3"])])
+    q = [float(extr[k]) for k in ("qw", "qx", "qy", "qz")]
+    T = se3(quat_wxyz_to_rot(q), [float(extr[k]) for k in ("tx_m", "ty_m", "tz_m")])
+    return CameraModel(int(round(int(intr["width_px"]) * scale)),
+                       int(round(int(intr["height_px"]) * scale)), K, dist, T)
+
+
+def _csv_row(path: Path, sensor: str) -> dict:
+    lines = [line.strip().split(",") for line in path.read_text().splitlines() if line.strip()]
+    rows = {r[0]: dict(zip(lines[0], r)) for r in lines[1:]}
+    return rows[sensor]
 
 
 def load_av2(log_dir, seed: int = 0) -> World:

@@ -135,3 +135,14 @@ def test_av2_logs_import_with_real_ego_route(shared_data):
         # the ego vehicle drives on the drivable area
         on = _classes_along(world, paint.resample(world.routes[0], 1.0)) >= Cls.ROAD
         assert on.mean() > 0.9
+
+
+def test_av2_camera_is_a_real_front_camera(shared_data):
+    from services.sim.av2 import av2_camera
+
+    log = shared_data / "av2" / "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
+    cam = av2_camera(log, scale=0.25)
+    assert (cam.width, cam.height) == (388, 512)  # portrait ring_front_center, quarter size
+    assert 1.3 < cam.T_vehicle_camera[2, 3] < 1.5
+    uv, front = cam.project_vehicle_points(np.array([[30.0, 0.0, cam.T_vehicle_camera[2, 3]]]))
+    assert front[0] and abs(uv[0, 0] - cam.K[0, 2]) < 5 and abs(uv[0, 1] - cam.K[1, 2]) < 5
