@@ -119,6 +119,7 @@ class LocalizerConfig:
     publish: bool = True  # publish roadmap/pose/<vehicle>
     recent_frames: int = 0  # also match a sample of the last n frames' points (odometry-chained)
     icp_prior: bool = False  # use the filter's prediction as a prior inside ICP
+    icp_track_gate_m: float = 1.5  # first correspondence gate while tracking (init: icp_gate_start_m)
     estimate_attitude: bool = True  # estimate camera pitch/roll per frame in ICP
 
 

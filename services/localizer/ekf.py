@@ -117,6 +117,41 @@ class PoseFilter:
         """ICP pose measurement; False if gated out."""
         return self._update(np.asarray(pose, float), np.eye(3, 4), np.asarray(cov, float))
 
+    def update_posterior(self, pose: np.ndarray, information: np.ndarray,
+                         gate_chi2: float = 16.27) -> bool:
+        """Accept a pose already fused with this filter's prediction (ICP with the prediction as
+        its prior) together with the information its measurements added (3x3 over the pose).
+
+        The pose block becomes (P^-1 + information)^-1; the odometry scale follows the pose through
+        its prior correlation (it is observed only through the pose). Gated by the shift of the
+        pose relative to the prediction's covariance."""
+        if not self.initialized:
+            return False
+        P = self.ekf.P
+        Ppp = P[:3, :3]
+        shift = _pose_residual(pose, self.ekf.x.reshape(-1)[:3])
+        d2 = float(shift @ np.linalg.solve(Ppp, shift))
+        self.last_nis = d2
+        if d2 > gate_chi2:
+            self.rejections += 1
+            return False
+        self.rejections = 0
+        Ppp_post = np.linalg.inv(np.linalg.inv(Ppp) + information)
+        Ppp_post = 0.5 * (Ppp_post + Ppp_post.T)
+        K = P[3:, :3] @ np.linalg.inv(Ppp)  # regression of the scale on the pose
+        x = self.ekf.x.reshape(-1).copy()
+        x[3:] = x[3:] + K @ shift
+        x[:3] = np.asarray(pose, float)
+        x[2] = float(wrap_angle(x[2]))
+        P_new = np.empty_like(P)
+        P_new[:3, :3] = Ppp_post
+        P_new[3:, :3] = K @ Ppp_post
+        P_new[:3, 3:] = P_new[3:, :3].T
+        P_new[3:, 3:] = P[3:, 3:] - K @ P[:3, 3:] + K @ Ppp_post @ K.T
+        self.ekf.x = x.reshape(-1, 1)
+        self.ekf.P = P_new
+        return True
+
     def update_position(self, xy: np.ndarray, sigma_m: float) -> bool:
         """GNSS position measurement (isotropic sigma); False if gated out."""
         H = np.eye(2, 4)

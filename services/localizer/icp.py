@@ -29,6 +29,7 @@ class IcpResult:
     info_eigs: np.ndarray  # eigenvalues of the (normalized) information matrix, ascending
     iterations: int
     attitude: np.ndarray = field(default_factory=lambda: np.zeros(0))  # camera (pitch, roll) rad
+    information: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))  # of the points only
 
     @property
     def inlier_ratio(self) -> float:
@@ -101,12 +102,16 @@ class Icp:
         self.min_points = min_points
 
     def register(self, points_v: np.ndarray, slots: np.ndarray, pose0: np.ndarray, local_map,
-                 jacobians: np.ndarray | None = None, prior_cov: np.ndarray | None = None):
+                 jacobians: np.ndarray | None = None, prior_cov: np.ndarray | None = None,
+                 gate_start_m: float | None = None):
         """Align points (N, 2) of class slots (N,) to the map from an initial pose; None if too few.
 
         jacobians: optional (N, 2, k) derivatives of the points w.r.t. camera pitch and roll.
         prior_cov: optional 3x3 covariance of pose0 (the filter's prediction): a prior that keeps
-        directions the points hardly constrain (the flat bottom of the cost) where they were."""
+        directions the points hardly constrain (the flat bottom of the cost) where they were.
+        gate_start_m: correspondence gate of the first iteration (tracking: small, so the
+        match cannot jump to the next dash)."""
+        g0 = self.gate_start_m if gate_start_m is None else gate_start_m
         pose = np.asarray(pose0, dtype=np.float64).copy()
         if len(points_v) < self.min_points:
             return None
@@ -119,8 +124,7 @@ class Icp:
         pose_prior = pose.copy()
         it = 0
         for it in range(self.iterations):
-            gate = self.gate_start_m + (self.gate_end_m - self.gate_start_m) * it / max(
-                self.iterations - 1, 1)
+            gate = g0 + (self.gate_end_m - g0) * it / max(self.iterations - 1, 1)
             pts = _moved(pts0, jac, att)
             nearest, valid = local_map.nearest(_to_world(pts, pose), slots)
             H, g, err, inl, w = _normal_equations(pts[valid], None if jac is None else jac[valid],
@@ -165,12 +169,14 @@ class Icp:
                                                               scale), len(att))
         cov, inflation, eigs, weak, degenerate = _covariance(H, scale, self.degenerate_ratio)
         cov = cov * self.point_sigma_m**2 * self.cov_scale + inflation
+        info = np.linalg.pinv(cov - inflation) if degenerate else np.linalg.inv(cov)
         cov[0, 0] += self.min_sigma_m**2
         cov[1, 1] += self.min_sigma_m**2
         cov[2, 2] += self.min_sigma_yaw_rad**2
         n = int(inl.sum())
         rmse = float(np.sqrt(np.mean(err[inl] ** 2))) if n else float("inf")
-        return IcpResult(pose, cov, n, len(pts), rmse, degenerate, weak, eigs, iterations, att)
+        return IcpResult(pose, cov, n, len(pts), rmse, degenerate, weak, eigs, iterations, att,
+                         info)
 
     def _smoothed_information(self, pts, jac, slots, pose, local_map, scale):
         """Information matrix averaged over poses a probe step away in each direction.

@@ -37,7 +37,7 @@ class Localizer:
                  init_min_overlap: float = 0.5, init_sigma_m: float = 0.3,
                  init_min_frames: int = 8, init_every: int = 4, init_margin: float = 0.05,
                  reinit_bad_frames: int = 30, recent_frames: int = 8, recent_points: int = 80,
-                 use_prior: bool = True, seed: int = 0):
+                 use_prior: bool = False, track_gate_m: float = 1.5, seed: int = 0):
         self.cache, self.icp, self.ekf, self.search = cache, icp, ekf, search
         self.max_points, self.road_fraction = max_points, road_fraction
         self.gnss_inflate, self.gnss_min_sigma_m = gnss_inflate, gnss_min_sigma_m
@@ -48,6 +48,7 @@ class Localizer:
         self.reinit_bad_frames = reinit_bad_frames
         self.recent_frames, self.recent_points = recent_frames, recent_points
         self.use_prior = use_prior
+        self.track_gate_m = track_gate_m
         self.recent: deque = deque(maxlen=max(recent_frames, 1))  # tracking: multi-frame matching
         self._rng = np.random.default_rng(seed)
         self.t_ns: int | None = None
@@ -92,10 +93,15 @@ class Localizer:
                 return Estimate(t_ns, np.full(3, np.nan), np.eye(3) * 1e6, False, diag)
         all_pts, all_cls, all_jac = self._with_recent(pts, cls, jac)
         prior = self.ekf.cov if self.use_prior else None
+        gate = max(self.track_gate_m, 3.0 * self.ekf.position_sigma_m)
         result = self.icp.register(all_pts, class_slots(all_cls), self.ekf.pose, self.cache,
-                                   all_jac, prior)
+                                   all_jac, prior, gate_start_m=gate)
         self._remember(result, pts, cls, jac)
-        accepted = result is not None and self.ekf.update_pose(result.pose, result.cov)
+        if self.use_prior:
+            accepted = result is not None and self.ekf.update_posterior(result.pose,
+                                                                        result.information)
+        else:
+            accepted = result is not None and self.ekf.update_pose(result.pose, result.cov)
         diag = self._frame_diag(result, accepted)
         self._watch_integrity(result, accepted)
         return Estimate(t_ns, self.ekf.pose, self.ekf.cov, self.ekf.ok, diag)
@@ -267,7 +273,7 @@ def get_localizer(lc, cache: TileCache, seed: int = 0) -> Localizer:
                      road_fraction=lc.road_fraction, gnss_inflate=lc.gnss_inflate,
                      init_travel_m=lc.init_travel_m, init_frames=lc.init_frames,
                      reinit_bad_frames=lc.reinit_bad_frames, recent_frames=lc.recent_frames,
-                     use_prior=lc.icp_prior, seed=seed)
+                     use_prior=lc.icp_prior, track_gate_m=lc.icp_track_gate_m, seed=seed)
 
 
 def replay(localizer: Localizer, streams: dict, frame_points, on_estimate=None) -> list[Estimate]:
