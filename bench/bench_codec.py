@@ -137,7 +137,8 @@ def run(quick: bool = False, world_spec: str | None = None) -> dict:
     truth = measure(tiles, km)
     merged = measure(merged_tiles(tiles), km)
     return {
-        "stages": {"tile_compress": merged["compress_ms"], "tile_decompress": merged["decompress_ms"]},
+        "stages": {"tile_compress": merged["compress_ms"],
+                   "tile_decompress": merged["decompress_ms"]},
         "codec": {
             "world": {"name": world.name, "km": round(km, 3)},
             "goal": {"kb_per_km_max": 10.0, "precision_recall_min": 0.97},

@@ -74,7 +74,8 @@ def varint_encode(values: np.ndarray) -> bytes:
     for k in range(5):
         m = nbytes > k
         byte = (v[m] >> np.uint64(7 * k)) & np.uint64(0x7F)
-        out[starts[m] + k] = byte.astype(np.uint8) | np.where(nbytes[m] > k + 1, 0x80, 0).astype(np.uint8)
+        more = np.where(nbytes[m] > k + 1, 0x80, 0).astype(np.uint8)
+        out[starts[m] + k] = byte.astype(np.uint8) | more
     return out.tobytes()
 
 
@@ -280,7 +281,8 @@ def encode_tile(
 
 def _compress(payload: bytes) -> bytes:
     z = zlib.compress(payload, 9)
-    x = lzma.compress(payload, format=lzma.FORMAT_RAW, filters=[{"id": lzma.FILTER_LZMA2, "preset": 9}])
+    x = lzma.compress(payload, format=lzma.FORMAT_RAW,
+                      filters=[{"id": lzma.FILTER_LZMA2, "preset": 9}])
     return MAGIC + (bytes([_ZLIB]) + z if len(z) <= len(x) else bytes([_LZMA]) + x)
 
 
@@ -413,7 +415,7 @@ def decode_raw(data: bytes) -> np.ndarray:
         d = zlib.decompressobj()
         raw = d.decompress(bytes(data), n + 1)
     except (zlib.error, TypeError) as exc:
-        raise CodecError(f"raw tile: expected zlib of a {TILE_CELLS}x{TILE_CELLS} uint8 raster") from exc
+        raise CodecError(f"raw tile: expected zlib of a {TILE_CELLS}^2 uint8 raster") from exc
     if len(raw) != n or not d.eof or d.unused_data:
         raise CodecError(f"raw tile: expected zlib of exactly {n} bytes")
     labels = np.frombuffer(raw, dtype=np.uint8).reshape(TILE_CELLS, TILE_CELLS).copy()

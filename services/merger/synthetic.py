@@ -45,7 +45,8 @@ def _road_markings(centre: np.ndarray) -> list[Marking]:
     half = LANE_W_M
     ms = [Marking(Cls.ROAD, strip(centre, 2 * half + 1.0), "road")]
     for side in (-1, 1):
-        ms.append(Marking(Cls.LANE_LINE, strip(_offset(centre, side * (half - 0.1)), LINE_W_M), "solid"))
+        edge = _offset(centre, side * (half - 0.1))
+        ms.append(Marking(Cls.LANE_LINE, strip(edge, LINE_W_M), "solid"))
     ms += [Marking(Cls.LANE_LINE, q, "dashed") for q in _dashes(centre, 3.0, 6.0)]
     return ms
 
@@ -61,7 +62,8 @@ def _crossing(at_xy: np.ndarray, heading_rad: float) -> list[Marking]:
     ms = [Marking(Cls.STOP_LINE, place([[0, -3.4], [0.3, -3.4], [0.3, -0.1], [0, -0.1]]), "stop")]
     for k in range(8):
         y0 = -3.4 + k * 0.9
-        ms.append(Marking(Cls.CROSSWALK, place([[1.5, y0], [5.5, y0], [5.5, y0 + 0.45], [1.5, y0 + 0.45]]), "zebra"))
+        stripe = [[1.5, y0], [5.5, y0], [5.5, y0 + 0.45], [1.5, y0 + 0.45]]
+        ms.append(Marking(Cls.CROSSWALK, place(stripe), "zebra"))
     arrow = [[-8, -1.9], [-4, -1.9], [-4, -1.4], [-2.5, -1.75], [-4, -2.1], [-4, -1.6], [-8, -1.6]]
     ms.append(Marking(Cls.GROUND_SIGN, place(arrow), "arrow_straight"))
     # an "O" glyph: four bars around a hole

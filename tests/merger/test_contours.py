@@ -24,7 +24,7 @@ from services.merger.synthetic import synthetic_world
 
 @pytest.fixture(scope="module")
 def tile_labels():
-    """A 512 x 512 window of the synthetic world with a crossing: dashes, zebra, arrow, an O glyph."""
+    """A 512 x 512 window of the synthetic world at a crossing: dashes, zebra, arrow, O glyph."""
     world = synthetic_world(km=0.2, seed=0)
     end = world.routes[0][-12]
     return world.rasterize(end[0] - 35.0, end[1] - 25.6, 512, 512)
@@ -88,7 +88,8 @@ def test_raw_round_trip_is_exact(tile_labels):
 
 
 def test_varint_round_trip(rng):
-    values = np.concatenate([rng.integers(0, 1 << 34, 500), [0, 127, 128, 16383, 16384]]).astype(np.uint64)
+    values = np.concatenate([rng.integers(0, 1 << 34, 500), [0, 127, 128, 16383, 16384]])
+    values = values.astype(np.uint64)
     assert np.array_equal(varint_decode(varint_encode(values)), values)
 
 
@@ -97,6 +98,19 @@ def test_encode_rejects_wrong_shape_or_dtype():
         encode_tile(np.zeros((256, 512), np.uint8))
     with pytest.raises(CodecError):
         encode_tile(np.zeros((512, 512), np.int32))
+
+
+EMPTY = b"\x0a" + b"\x00" * 10  # 5 classes x (0 polygons, 0 lines)
+
+
+def _z(payload: bytes) -> bytes:
+    return MAGIC + b"\x00" + zlib.compress(payload)
+
+
+def test_minimal_empty_payload_decodes():  # the positive control for the vectors below
+    assert not decode_tile(_z(EMPTY)).any()
+    two_points = b"\x0c" + bytes([0, 0, 0, 1, 2, 2] + [0] * 6) + b"\x14\x14\x14\x00"
+    assert (decode_tile(_z(two_points)) == Cls.LANE_LINE).sum() > 10
 
 
 @pytest.mark.parametrize(
@@ -108,11 +122,13 @@ def test_encode_rejects_wrong_shape_or_dtype():
         MAGIC + b"\x07" + b"x",  # unknown compressor
         MAGIC + b"\x00" + b"not zlib",
         MAGIC + b"\x00" + zlib.compress(b"\x80"),  # truncated varint
-        MAGIC + b"\x00" + zlib.compress(b"\x05\x01\x01\x01\x01\x01"),  # structure ends early
-        MAGIC + b"\x00" + zlib.compress(b"\x05\x00\x00\x00\x00\x00\x02"),  # odd coordinates
-        MAGIC + b"\x00" + zlib.compress(b"\x05\x01\x01\x01\x00\x00\x02\x02"),  # 1 point named, 2 sent
-        MAGIC + b"\x00" + zlib.compress(b"\x05\x01\x01\x01\x00\x00\x03\x00"),  # negative coordinate
-        MAGIC + b"\x00" + zlib.compress(b"\x05\x00\x00\x00\x00\x00") + b"tail",  # trailing bytes
+        _z(b"\x05\x01\x01\x01\x01\x01"),  # structure ends early
+        _z(EMPTY + b"\x02"),  # odd number of coordinates
+        _z(b"\x0c" + bytes([1, 1, 1, 0] + [0] * 8) + b"\x02\x02\x02\x02"),  # 1 point named, 2 sent
+        _z(b"\x0c" + bytes([1, 1, 1, 0] + [0] * 8) + b"\x03\x00"),  # negative coordinate
+        _z(b"\x0c" + bytes([0, 0, 0, 1, 2, 0] + [0] * 6) + b"\x02" * 4),  # line thickness 0
+        _z(b"\x0b" + b"\x00" * 11),  # trailing structure
+        _z(EMPTY) + b"tail",  # trailing bytes after the stream
         MAGIC + b"\x00" + zlib.compress(b"\x00" * 20_000_000),  # decompression bomb
     ],
 )
@@ -163,6 +179,9 @@ def test_noisy_merged_like_tile_keeps_fidelity_and_stripes(tile_labels, rng):
     decoded = decode_tile(encode_tile(noisy))
     for name, pr in per_class_precision_recall(decoded, noisy, tol_cells=1).items():
         assert pr["precision"] >= 0.97 and pr["recall"] >= 0.97, name
-    stripes = cv2.connectedComponents((tile_labels == Cls.CROSSWALK).astype(np.uint8), connectivity=4)[0]
-    kept = cv2.connectedComponents((decoded == Cls.CROSSWALK).astype(np.uint8), connectivity=4)[0]
+    def count(labels):
+        mask = (labels == Cls.CROSSWALK).astype(np.uint8)
+        return cv2.connectedComponents(mask, connectivity=4)[0]
+
+    stripes, kept = count(tile_labels), count(decoded)
     assert kept >= stripes - 2  # zebra stripes are not merged into one blob

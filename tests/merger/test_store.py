@@ -24,7 +24,8 @@ def _batches():
     out = []
     for i in range(4):
         for tile in ((0, 0), (1, 0)):
-            out.append(patches_from_labels(lane_tile(), tile=tile, traversal=f"d{i}", t_ns=i * 10**12))
+            out.append(patches_from_labels(lane_tile(), tile=tile, traversal=f"d{i}",
+                                           t_ns=i * 10**12))
     return out
 
 
