@@ -144,7 +144,8 @@ class Appearance:
         pick = rng.choice(len(grounds), 2, replace=False)
         self.offroad_rgb = grounds[pick[0]] * rng.uniform(0.8, 1.15)
         self.offroad2_rgb = grounds[pick[1]] * rng.uniform(0.8, 1.15)
-        self.paint_rgb = np.array([235, 235, 228]) * rng.uniform(0.85, 1.0)
+        self.paint_rgb = (np.array([235, 235, 228]) if rng.random() < 0.8
+                          else np.array([230, 222, 175])) * rng.uniform(0.85, 1.0)  # aged: yellowish
         self.fade = rng.uniform(0.45, 1.0)  # how much of the paint is left
         self.wear_level = rng.uniform(0.0, 0.3)  # worn fraction of paint
         self.gain = rng.uniform(0.65, 1.3)

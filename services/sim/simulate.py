@@ -1,6 +1,13 @@
 """Drive simulation with ground truth: vehicles drive a world's routes and write drive logs
 (common/drivelog.py) with true poses, true label images, optionally rendered RGB frames,
-wheel odometry, gyro and GNSS of the mapping or production noise profile (DESIGN.md)."""
+wheel odometry, gyro and GNSS of the mapping or production noise profile (DESIGN.md).
+
+Conventions of the simulated logs: frames 10 Hz, odometry 50 Hz, gyro 100 Hz, GNSS 10 Hz (RTK) or
+5 Hz (consumer), dense truth 100 Hz. Inside a GNSS-blocked zone a fix has gnss_ok False, sigma 50 m
+and a corrupted position: use only fixes with gnss_ok. The logged camera is the configured one; the
+images are rendered with it rotated by the calibration error (notes.calibration_error_rad) and a
+per-frame pitch/roll vibration. Label images are 0 above the horizon and on other vehicles.
+Times start at 1.6e9 s + seed * 1e6 s + slot * 3600 s, so a later seed is a later traversal."""
 
 import logging
 import math
@@ -165,6 +172,8 @@ def _other_vehicles(traj: motion.Trajectory, rng):
     lead_on = rng.random(int(traj.duration_s / 10.0) + 2) < 0.35  # lead car present per 10 s
     lead_gap = rng.uniform(10.0, 30.0, len(lead_on))
     lead_col = _car_colour(rng)
+    oncoming_on = rng.random(len(lead_on)) < 0.3  # a car passes the other way per 10 s
+    oncoming_col = [_car_colour(rng) for _ in range(len(lead_on))]
 
     def visible(t: float) -> list:
         x, y = np.interp(t, traj.t_s, traj.xy[:, 0]), np.interp(t, traj.t_s, traj.xy[:, 1])
@@ -177,6 +186,14 @@ def _other_vehicles(traj: motion.Trajectory, rng):
                 lx, ly = np.interp(at, s, traj.xy[:, 0]), np.interp(at, s, traj.xy[:, 1])
                 out.append(Vehicle(lx, ly, float(np.interp(at, s, traj.yaw)), 4.4, 1.8, 1.5,
                                    lead_col))
+        if oncoming_on[k]:  # in the lane to our left, coming towards us
+            now = np.interp(t, traj.t_s, s)
+            at = np.interp(10.0 * k, traj.t_s, s) + 90.0 - 14.0 * (t - 10.0 * k)
+            if now + 4.0 < at < s[-1]:
+                yaw = float(np.interp(at, s, traj.yaw))
+                ox = np.interp(at, s, traj.xy[:, 0]) - 3.3 * math.sin(yaw)
+                oy = np.interp(at, s, traj.xy[:, 1]) + 3.3 * math.cos(yaw)
+                out.append(Vehicle(ox, oy, yaw + math.pi, 4.5, 1.8, 1.5, oncoming_col[k]))
         return out
 
     return visible
