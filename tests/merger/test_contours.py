@@ -179,6 +179,7 @@ def test_noisy_merged_like_tile_keeps_fidelity_and_stripes(tile_labels, rng):
     decoded = decode_tile(encode_tile(noisy))
     for name, pr in per_class_precision_recall(decoded, noisy, tol_cells=1).items():
         assert pr["precision"] >= 0.97 and pr["recall"] >= 0.97, name
+
     def count(labels):
         mask = (labels == Cls.CROSSWALK).astype(np.uint8)
         return cv2.connectedComponents(mask, connectivity=4)[0]
