@@ -100,7 +100,7 @@ def merge_throughput(quick: bool) -> dict:
     tiles = world_label_tiles(quick)
     patches = traversal_patches(tiles, traversals=6, pieces=4)
     rows = sum(len(p.cells) for p in patches)
-    repeats = 3 if quick else 5
+    repeats = 3 if quick else 7
     ours_w, ours_c = _best_times(_ours, patches, repeats)
     ref_w, ref_c = _best_times(_bincount, patches, repeats)
     return {
