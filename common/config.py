@@ -121,6 +121,8 @@ class LocalizerConfig:
     icp_prior: bool = False  # use the filter's prediction as a prior inside ICP
     icp_track_gate_m: float = 1.5  # first correspondence gate while tracking (init: icp_gate_start_m)
     estimate_attitude: bool = True  # estimate camera pitch/roll per frame in ICP
+    attitude_roll: bool = True  # roll too (else pitch only)
+    attitude_sigma_deg: float = 0.3  # prior of the per-frame attitude offset
 
 
 @dataclass(frozen=True)

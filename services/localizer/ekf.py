@@ -1,5 +1,5 @@
 """EKF over the planar pose (x, y, yaw) in the world frame plus the wheel-odometry scale factor
-(filterpy's ExtendedKalmanFilter).
+and the gyro bias (filterpy's ExtendedKalmanFilter).
 
 Predict from wheel speed (m/s, times the estimated scale) and gyro yaw rate (rad/s); update with an ICP pose (its 3x3
 covariance) or a consumer GNSS position. Every update is gated by the Mahalanobis distance of its
@@ -29,10 +29,11 @@ class _PlanarEKF(ExtendedKalmanFilter):
     def predict_x(self, u=None):
         v, w, dt = u
         x = self.x.reshape(-1)
+        w = w - x[4]
         yaw_mid = x[2] + 0.5 * w * dt
         d = x[3] * v * dt
         x_new = np.array([x[0] + d * math.cos(yaw_mid), x[1] + d * math.sin(yaw_mid),
-                          float(wrap_angle(x[2] + w * dt)), x[3]])
+                          float(wrap_angle(x[2] + w * dt)), x[3], x[4]])
         self.x = x_new.reshape(self.x.shape)
 
 
@@ -42,7 +43,9 @@ class PoseFilter:
     def __init__(self, *, speed_sigma_rel: float = 0.005, speed_sigma_mps: float = 0.05,
                  yaw_rate_sigma_rps: float = math.radians(0.3), gate_prob_chi2: dict | None = None,
                  max_position_sigma_m: float = 1.0, max_rejections: int = 20,
-                 scale_sigma0: float = 0.03, scale_walk_per_s: float = 1e-3):
+                 scale_sigma0: float = 0.03, scale_walk_per_s: float = 1e-3,
+                 gyro_bias_sigma0_rps: float = math.radians(0.1),
+                 gyro_bias_walk_rps: float = math.radians(0.002)):
         self.speed_sigma_rel = speed_sigma_rel
         self.speed_sigma_mps = speed_sigma_mps
         self.yaw_rate_sigma_rps = yaw_rate_sigma_rps
@@ -50,8 +53,9 @@ class PoseFilter:
         self.max_position_sigma_m = max_position_sigma_m
         self.max_rejections = max_rejections
         self.scale_sigma0, self.scale_walk_per_s = scale_sigma0, scale_walk_per_s
-        self.ekf = _PlanarEKF(dim_x=4, dim_z=3)
-        self.ekf.x = np.array([[0.0], [0.0], [0.0], [1.0]])
+        self.gyro_bias_sigma0, self.gyro_bias_walk = gyro_bias_sigma0_rps, gyro_bias_walk_rps
+        self.ekf = _PlanarEKF(dim_x=5, dim_z=3)
+        self.ekf.x = np.array([[0.0], [0.0], [0.0], [1.0], [0.0]])
         self.initialized = False
         self.rejections = 0
         self.last_nis = 0.0
@@ -61,10 +65,12 @@ class PoseFilter:
     def reset(self, pose: np.ndarray, cov: np.ndarray, scale: float | None = None) -> None:
         """Start from a pose and its 3x3 covariance; the odometry scale is kept across resets."""
         scale = float(self.ekf.x[3, 0]) if scale is None else float(scale)
-        self.ekf.x = np.array([*np.asarray(pose, dtype=float)[:3], scale]).reshape(4, 1)
-        self.ekf.P = np.zeros((4, 4))
+        bias = float(self.ekf.x[4, 0])
+        self.ekf.x = np.array([*np.asarray(pose, dtype=float)[:3], scale, bias]).reshape(5, 1)
+        self.ekf.P = np.zeros((5, 5))
         self.ekf.P[:3, :3] = np.asarray(cov, dtype=float)
         self.ekf.P[3, 3] = self.scale_sigma0**2
+        self.ekf.P[4, 4] = self.gyro_bias_sigma0**2
         self.initialized = True
         self.rejections = 0
 
@@ -81,6 +87,10 @@ class PoseFilter:
         return float(self.ekf.x[3, 0])
 
     @property
+    def gyro_bias_rps(self) -> float:
+        return float(self.ekf.x[4, 0])
+
+    @property
     def position_sigma_m(self) -> float:
         return float(math.sqrt(max(np.linalg.eigvalsh(self.ekf.P[:2, :2])[-1], 0.0)))
 
@@ -94,28 +104,33 @@ class PoseFilter:
     def predict(self, speed_mps: float, yaw_rate_rps: float, dt_s: float) -> None:
         if not self.initialized or dt_s <= 0:
             return
-        _, _, yaw, k = self.ekf.x.reshape(-1)
-        yaw_mid = yaw + 0.5 * yaw_rate_rps * dt_s
+        _, _, yaw, k, b = self.ekf.x.reshape(-1)
+        yaw_mid = yaw + 0.5 * (yaw_rate_rps - b) * dt_s
         c, s = math.cos(yaw_mid), math.sin(yaw_mid)
         d = k * speed_mps * dt_s
-        # Jacobians of the motion model w.r.t. the state (x, y, yaw, scale) and inputs (v, w)
-        self.ekf.F = np.array([[1.0, 0.0, -d * s, speed_mps * dt_s * c],
-                               [0.0, 1.0, d * c, speed_mps * dt_s * s],
-                               [0.0, 0.0, 1.0, 0.0],
-                               [0.0, 0.0, 0.0, 1.0]])
-        G = np.array([[k * dt_s * c, -0.5 * d * dt_s * s],
-                      [k * dt_s * s, 0.5 * d * dt_s * c],
+        h = 0.5 * dt_s
+        # Jacobians of the motion model w.r.t. the state (x, y, yaw, scale, gyro bias) and the
+        # inputs (v, w)
+        self.ekf.F = np.array([[1.0, 0.0, -d * s, speed_mps * dt_s * c, d * s * h],
+                               [0.0, 1.0, d * c, speed_mps * dt_s * s, -d * c * h],
+                               [0.0, 0.0, 1.0, 0.0, -dt_s],
+                               [0.0, 0.0, 0.0, 1.0, 0.0],
+                               [0.0, 0.0, 0.0, 0.0, 1.0]])
+        G = np.array([[k * dt_s * c, -d * s * h],
+                      [k * dt_s * s, d * c * h],
                       [0.0, dt_s],
+                      [0.0, 0.0],
                       [0.0, 0.0]])
         sv = self.speed_sigma_rel * abs(speed_mps) + self.speed_sigma_mps
         Q = G @ np.diag([sv**2, self.yaw_rate_sigma_rps**2]) @ G.T
         Q[3, 3] = self.scale_walk_per_s**2 * dt_s
+        Q[4, 4] = self.gyro_bias_walk**2 * dt_s
         self.ekf.Q = Q
         self.ekf.predict(u=(speed_mps, yaw_rate_rps, dt_s))
 
     def update_pose(self, pose: np.ndarray, cov: np.ndarray) -> bool:
         """ICP pose measurement; False if gated out."""
-        return self._update(np.asarray(pose, float), np.eye(3, 4), np.asarray(cov, float))
+        return self._update(np.asarray(pose, float), np.eye(3, 5), np.asarray(cov, float))
 
     def update_posterior(self, pose: np.ndarray, information: np.ndarray,
                          gate_chi2: float = 16.27) -> bool:
@@ -154,7 +169,7 @@ class PoseFilter:
 
     def update_position(self, xy: np.ndarray, sigma_m: float) -> bool:
         """GNSS position measurement (isotropic sigma); False if gated out."""
-        H = np.eye(2, 4)
+        H = np.eye(2, 5)
         return self._update(np.asarray(xy, float), H, np.eye(2) * sigma_m**2)
 
     def innovation(self, z: np.ndarray, H: np.ndarray, R: np.ndarray):

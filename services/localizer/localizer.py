@@ -264,7 +264,8 @@ def _align_2d(src: np.ndarray, dst: np.ndarray):
 def get_localizer(lc, cache: TileCache, seed: int = 0) -> Localizer:
     """LocalizerConfig -> Localizer with its ICP, EKF and coarse search."""
     icp = Icp(iterations=lc.icp_iterations, gate_start_m=lc.icp_gate_start_m,
-              gate_end_m=lc.icp_gate_end_m, huber_m=lc.icp_huber_m, cov_scale=lc.icp_cov_scale)
+              gate_end_m=lc.icp_gate_end_m, huber_m=lc.icp_huber_m, cov_scale=lc.icp_cov_scale,
+              attitude_sigma_rad=math.radians(lc.attitude_sigma_deg))
     ekf = PoseFilter(speed_sigma_rel=lc.speed_sigma_rel,
                      yaw_rate_sigma_rps=math.radians(lc.yaw_rate_sigma_dps),
                      max_position_sigma_m=lc.max_position_sigma_m)

@@ -99,6 +99,7 @@ class _FrameSource:
         lc, roi = cfg.localizer, cfg.roi
         self.stride = lc.ipm_stride
         self.estimate_attitude = lc.estimate_attitude
+        self.roll = lc.attitude_roll
         self.ipm = FramePoints(log.meta.camera, x_min_m=roi.x_min_m, length_m=roi.length_m,
                                width_m=roi.width_m)
         if lc.segmenter == "truth":
@@ -116,7 +117,9 @@ class _FrameSource:
             raise DriveLogError(f"{self.log.root}: frame {i} has neither an image nor labels")
         labels = self.segmenter.segment(image, truth)
         pts, cls, jac = self.ipm.points(labels, stride=self.stride)
-        return (pts, cls, jac) if self.estimate_attitude else (pts, cls)
+        if not self.estimate_attitude:
+            return pts, cls
+        return pts, cls, (jac if self.roll else jac[:, :, :1])
 
 
 def _wanted_tiles(loc, streams, i: int, lc):
