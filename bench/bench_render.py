@@ -28,8 +28,11 @@ from services.sim.worlds import load_world  # noqa: E402
 
 def _stats(ms: list[float]) -> dict:
     a = np.array(ms)
-    return {"p50_ms": round(float(np.percentile(a, 50)), 2),
-            "p95_ms": round(float(np.percentile(a, 95)), 2), "frames": len(a)}
+    return {
+        "p50_ms": round(float(np.percentile(a, 50)), 2),
+        "p95_ms": round(float(np.percentile(a, 95)), 2),
+        "frames": len(a),
+    }
 
 
 def main() -> int:
@@ -50,7 +53,7 @@ def main() -> int:
     shake = sensors.vibration(len(t), sensors.PROFILES["mapping"], rng)
     renderer = FrameRenderer(world, camera, seed=0)
     rgb_ms, lab_ms, rgb_cpu, lab_cpu = [], [], [], []
-    for i, (ti, pose) in enumerate(zip(t, poses)):
+    for i, (ti, pose) in enumerate(zip(t, poses, strict=False)):
         T = camera.perturbed(shake[i, 0], shake[i, 1]).T_vehicle_camera
         c0, t0 = time.process_time(), time.perf_counter()
         renderer.render(pose, T, float(ti), others(ti))
@@ -70,14 +73,23 @@ def main() -> int:
         frames = len(list((Path(path) / "labels").glob("*.png")))
 
     report = {
-        "cores": os.cpu_count(), "python": platform.python_version(),
-        "world": world.name, "size": [camera.width, camera.height],
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "world": world.name,
+        "size": [camera.width, camera.height],
         "load_avg_1min": round(os.getloadavg()[0], 2),
         "render_rgb_and_labels": _stats(rgb_ms),
         "render_labels_only": _stats(lab_ms),
-        "cpu_time": {"render_rgb_and_labels": _stats(rgb_cpu), "render_labels_only": _stats(lab_cpu)},
-        "label_only_sim": {"km": args.sim_km, "frames": frames, "wall_s": round(sim_s, 2),
-                           "frames_per_s": round(frames / sim_s, 1)},
+        "cpu_time": {
+            "render_rgb_and_labels": _stats(rgb_cpu),
+            "render_labels_only": _stats(lab_cpu),
+        },
+        "label_only_sim": {
+            "km": args.sim_km,
+            "frames": frames,
+            "wall_s": round(sim_s, 2),
+            "frames_per_s": round(frames / sim_s, 1),
+        },
     }
     Path(args.out).write_text(json.dumps(report, indent=1))
     sys.stdout.write(json.dumps(report, indent=1) + "\n")

@@ -7,16 +7,22 @@ from pathlib import Path
 
 import numpy as np
 
+from common.camera import CameraModel
 from common.classes import Cls
 from common.errors import WorldError
-from common.camera import CameraModel
 from common.geometry import quat_wxyz_to_rot, se3
 from common.world import Marking, World
 from services.sim import paint, routes
 
 WIDTH_M = 0.15
-STYLES = {"SOLID": "solid", "DASHED": "dashed", "DOUBLE_SOLID": "double",
-          "DOUBLE_DASH": "double", "SOLID_DASH": "solid_dashed", "DASH_SOLID": "dashed_solid"}
+STYLES = {
+    "SOLID": "solid",
+    "DASHED": "dashed",
+    "DOUBLE_SOLID": "double",
+    "DOUBLE_DASH": "double",
+    "SOLID_DASH": "solid_dashed",
+    "DASH_SOLID": "dashed_solid",
+}
 PITTSBURGH_LATLON = (40.44, -80.0)
 
 
@@ -53,19 +59,28 @@ def av2_camera(log_dir, sensor: str = "ring_front_center", scale: float = 1.0) -
         extr = _csv_row(cal / "egovehicle_SE3_sensor.csv", sensor)
     except (OSError, KeyError, ValueError) as exc:
         raise WorldError(f"{cal}: no calibration for {sensor} ({exc})") from exc
-    K = np.array([[float(intr["fx_px"]) * scale, 0.0, float(intr["cx_px"]) * scale],
-                  [0.0, float(intr["fy_px"]) * scale, float(intr["cy_px"]) * scale],
-                  [0.0, 0.0, 1.0]])
+    K = np.array(
+        [
+            [float(intr["fx_px"]) * scale, 0.0, float(intr["cx_px"]) * scale],
+            [0.0, float(intr["fy_px"]) * scale, float(intr["cy_px"]) * scale],
+            [0.0, 0.0, 1.0],
+        ]
+    )
     dist = np.array([float(intr["k1"]), float(intr["k2"]), 0.0, 0.0, float(intr["k3"])])
     q = [float(extr[k]) for k in ("qw", "qx", "qy", "qz")]
     T = se3(quat_wxyz_to_rot(q), [float(extr[k]) for k in ("tx_m", "ty_m", "tz_m")])
-    return CameraModel(int(round(int(intr["width_px"]) * scale)),
-                       int(round(int(intr["height_px"]) * scale)), K, dist, T)
+    return CameraModel(
+        int(round(int(intr["width_px"]) * scale)),
+        int(round(int(intr["height_px"]) * scale)),
+        K,
+        dist,
+        T,
+    )
 
 
 def _csv_row(path: Path, sensor: str) -> dict:
     lines = [line.strip().split(",") for line in path.read_text().splitlines() if line.strip()]
-    rows = {r[0]: dict(zip(lines[0], r)) for r in lines[1:]}
+    rows = {r[0]: dict(zip(lines[0], r, strict=False)) for r in lines[1:]}
     return rows[sensor]
 
 
@@ -75,8 +90,10 @@ def load_av2(log_dir, seed: int = 0) -> World:
     if not maps:
         raise WorldError(f"{log_dir}: no log_map_archive_*.json")
     vector = json.loads(maps[0].read_text())
-    markings = [Marking(Cls.ROAD, _xy(a["area_boundary"]), "road")
-                for a in vector.get("drivable_areas", {}).values()]
+    markings = [
+        Marking(Cls.ROAD, _xy(a["area_boundary"]), "road")
+        for a in vector.get("drivable_areas", {}).values()
+    ]
     seen = set()
     centre = []
     for lane in vector.get("lane_segments", {}).values():
@@ -89,8 +106,13 @@ def load_av2(log_dir, seed: int = 0) -> World:
             seen.add(key)
             markings += paint.line_markings(poly, style, WIDTH_M, 3.0, 9.0)
         if lane.get("lane_type") == "VEHICLE":
-            centre.append(0.5 * (_param(_xy(lane["left_lane_boundary"])) +
-                                 _param(_xy(lane["right_lane_boundary"]))))
+            centre.append(
+                0.5
+                * (
+                    _param(_xy(lane["left_lane_boundary"]))
+                    + _param(_xy(lane["right_lane_boundary"]))
+                )
+            )
     for pc in vector.get("pedestrian_crossings", {}).values():
         e1, e2 = _xy(pc["edge1"]), _xy(pc["edge2"])
         if np.linalg.norm(e1[0] - e2[-1]) < np.linalg.norm(e1[0] - e2[0]):
@@ -98,9 +120,14 @@ def load_av2(log_dir, seed: int = 0) -> World:
         markings += paint.zebra(e1, e2)
     _, poses = load_ego_poses(log_dir)
     route = paint.dedupe(poses[:, :2], eps=0.05)
-    return World(name=f"av2:{log_dir.name[:8]}", markings=markings, routes=[route],
-                 gnss_blocked=[], km_of_road=routes.km_of_centrelines(centre),
-                 origin_latlon=PITTSBURGH_LATLON)
+    return World(
+        name=f"av2:{log_dir.name[:8]}",
+        markings=markings,
+        routes=[route],
+        gnss_blocked=[],
+        km_of_road=routes.km_of_centrelines(centre),
+        origin_latlon=PITTSBURGH_LATLON,
+    )
 
 
 def _param(poly, n: int = 20) -> np.ndarray:

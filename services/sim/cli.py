@@ -10,7 +10,6 @@ import numpy as np
 from common.camera import camera_from_config
 from common.drivelog import DriveLog
 from common.world import render_png
-from services.sim.simulate import simulate_drives
 from services.sim.worlds import load_world
 
 
@@ -50,7 +49,8 @@ def sim_command(args, cfg) -> int:
         f"world {world.name}: {world.km_of_road:.2f} km of road\n"
         f"{len(paths)} drive logs in {out} ({args.profile}): {summary['km']:.2f} km driven, "
         f"{summary['frames']} frames, GNSS outages {summary['outages']} "
-        f"({summary['outage_s']:.0f} s), {time.perf_counter() - t0:.1f} s\n")
+        f"({summary['outage_s']:.0f} s), {time.perf_counter() - t0:.1f} s\n"
+    )
     return 0
 
 
@@ -58,9 +58,22 @@ def _one(world, out, v, d, args, camera, bar):
     """Drive (v, d) exactly as simulate_drives(vehicles, drives) would, alone."""
     from services.sim import simulate
 
-    return [simulate._drive_one(world, out, v=v, d=d, vehicles=args.vehicles, profile=args.profile,
-                                seed=args.seed, images=not args.no_images, max_km=args.max_km,
-                                route=None, camera=camera, progress=bar)]
+    return [
+        simulate._drive_one(
+            world,
+            out,
+            v=v,
+            d=d,
+            vehicles=args.vehicles,
+            profile=args.profile,
+            seed=args.seed,
+            images=not args.no_images,
+            max_km=args.max_km,
+            route=None,
+            camera=camera,
+            progress=bar,
+        )
+    ]
 
 
 def summarize(paths) -> dict:
@@ -84,7 +97,9 @@ def world_command(args, cfg) -> int:
     labels, x0, y0 = world.rasterize_all()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     render_png(labels, args.out)
-    sys.stdout.write(f"world {world.name}: {world.km_of_road:.2f} km of road, "
-                     f"{len(world.markings)} polygons, {labels.shape[1] * 0.1:.0f} x "
-                     f"{labels.shape[0] * 0.1:.0f} m from ({x0:.1f}, {y0:.1f}) -> {args.out}\n")
+    sys.stdout.write(
+        f"world {world.name}: {world.km_of_road:.2f} km of road, "
+        f"{len(world.markings)} polygons, {labels.shape[1] * 0.1:.0f} x "
+        f"{labels.shape[0] * 0.1:.0f} m from ({x0:.1f}, {y0:.1f}) -> {args.out}\n"
+    )
     return 0

@@ -41,18 +41,30 @@ def ecef_to_geodetic(p: np.ndarray) -> tuple[float, float, float]:
 def enu_rotation(lat_deg: float, lon_deg: float) -> np.ndarray:
     """R_enu_ecef at a geodetic point."""
     la, lo = math.radians(lat_deg), math.radians(lon_deg)
-    return np.array([
-        [-math.sin(lo), math.cos(lo), 0.0],
-        [-math.sin(la) * math.cos(lo), -math.sin(la) * math.sin(lo), math.cos(la)],
-        [math.cos(la) * math.cos(lo), math.cos(la) * math.sin(lo), math.sin(la)],
-    ])
+    return np.array(
+        [
+            [-math.sin(lo), math.cos(lo), 0.0],
+            [-math.sin(la) * math.cos(lo), -math.sin(la) * math.sin(lo), math.cos(la)],
+            [math.cos(la) * math.cos(lo), math.cos(la) * math.sin(lo), math.sin(la)],
+        ]
+    )
 
 
 def comma_camera() -> CameraModel:
     """The comma2k19 road camera: fx = fy = 910, cx 582, cy 437, 1164 x 874, ~1.2 m high, level."""
-    return CameraModel.from_mount(width=1164, height=874, fx=910.0, fy=910.0, cx=582.0, cy=437.0,
-                                  dist=[0.0, 0.0, 0.0, 0.0, 0.0], x_m=1.5, y_m=0.0, height_m=1.22,
-                                  pitch_deg=0.0)
+    return CameraModel.from_mount(
+        width=1164,
+        height=874,
+        fx=910.0,
+        fy=910.0,
+        cx=582.0,
+        cy=437.0,
+        dist=[0.0, 0.0, 0.0, 0.0, 0.0],
+        x_m=1.5,
+        y_m=0.0,
+        height_m=1.22,
+        pitch_deg=0.0,
+    )
 
 
 def _load(seg: Path, rel: str) -> np.ndarray:
@@ -79,9 +91,12 @@ def read_segment(seg) -> dict:
     gyro = _load(seg, "processed_log/IMU/gyro/value")
     return {
         "origin": (lat0, lon0),
-        "t_frame": t_frame, "pose": np.stack([enu[:, 0], enu[:, 1], yaw], axis=1),
-        "t_gnss": _load(seg, "processed_log/GNSS/live_gnss_ublox/t"), "gnss_xy": np.stack([gx, gy], 1),
-        "t_imu": _load(seg, "processed_log/IMU/gyro/t"), "yaw_rate": -gyro[:, 2],
+        "t_frame": t_frame,
+        "pose": np.stack([enu[:, 0], enu[:, 1], yaw], axis=1),
+        "t_gnss": _load(seg, "processed_log/GNSS/live_gnss_ublox/t"),
+        "gnss_xy": np.stack([gx, gy], 1),
+        "t_imu": _load(seg, "processed_log/IMU/gyro/t"),
+        "yaw_rate": -gyro[:, 2],
         "t_odom": _load(seg, "processed_log/CAN/speed/t"),
         "speed": _load(seg, "processed_log/CAN/speed/value").reshape(-1),
     }
@@ -94,26 +109,43 @@ def convert(seg, out) -> Path:
     ns = lambda t: np.round(np.asarray(t) * 1e9).astype(np.int64)  # noqa: E731
     camera = comma_camera()
     meta = DriveLogMeta(
-        vehicle="comma2k19", traversal=f"comma2k19-{seg.name}", profile="production",
-        world={"name": f"comma2k19:{seg.name}", "origin_lat": d["origin"][0],
-               "origin_lon": d["origin"][1]},
+        vehicle="comma2k19",
+        traversal=f"comma2k19-{seg.name}",
+        profile="production",
+        world={
+            "name": f"comma2k19:{seg.name}",
+            "origin_lat": d["origin"][0],
+            "origin_lon": d["origin"][1],
+        },
         camera=camera,
-        notes={"source": "comma2k19", "segment": str(seg.name),
-               "poses": "fused INS/GNSS/vision reference of the device (camera), 20 Hz",
-               "gnss": "u-blox live fixes, sigma assumed", "images": "frame 0 only (preview.png)"},
+        notes={
+            "source": "comma2k19",
+            "segment": str(seg.name),
+            "poses": "fused INS/GNSS/vision reference of the device (camera), 20 Hz",
+            "gnss": "u-blox live fixes, sigma assumed",
+            "images": "frame 0 only (preview.png)",
+        },
     )
     writer = DriveLogWriter(out, meta)
     preview = cv2.imread(str(seg / "preview.png"), cv2.IMREAD_COLOR)
     if preview is not None and preview.shape[:2] == (camera.height, camera.width):
         writer.write_frame(0, cv2.cvtColor(preview, cv2.COLOR_BGR2RGB), None)
     n = len(d["t_gnss"])
-    writer.close({
-        "frame_t_ns": ns(d["t_frame"]), "frame_pose_true": d["pose"],
-        "odom_t_ns": ns(d["t_odom"]), "odom_speed_mps": d["speed"],
-        "imu_t_ns": ns(d["t_imu"]), "imu_yaw_rate_rps": d["yaw_rate"],
-        "gnss_t_ns": ns(d["t_gnss"]), "gnss_xy_m": d["gnss_xy"],
-        "gnss_sigma_m": np.full(n, GNSS_SIGMA_M), "gnss_ok": np.ones(n, bool),
-        "truth_t_ns": ns(d["t_frame"]), "truth_pose": d["pose"],
-    })
+    writer.close(
+        {
+            "frame_t_ns": ns(d["t_frame"]),
+            "frame_pose_true": d["pose"],
+            "odom_t_ns": ns(d["t_odom"]),
+            "odom_speed_mps": d["speed"],
+            "imu_t_ns": ns(d["t_imu"]),
+            "imu_yaw_rate_rps": d["yaw_rate"],
+            "gnss_t_ns": ns(d["t_gnss"]),
+            "gnss_xy_m": d["gnss_xy"],
+            "gnss_sigma_m": np.full(n, GNSS_SIGMA_M),
+            "gnss_ok": np.ones(n, bool),
+            "truth_t_ns": ns(d["t_frame"]),
+            "truth_pose": d["pose"],
+        }
+    )
     logger.info("comma2k19 %s -> %s: %d frames", seg.name, out, len(d["t_frame"]))
     return out

@@ -1,7 +1,7 @@
 """Lanelet2 OSM importer: lat/lon -> local ENU metres about the map centre.
 
 line_thin (0.12 m) / line_thick (0.25 m) solid, dashed (3 m / 6 m dashes), double and mixed lines;
-stop lines 0.3 m; pedestrian/zebra markings (pairs of crossing edges) as 0.5 m / 0.5 m zebra stripes;
+stop lines 0.3 m; pedestrian/zebra markings (pairs of crossing edges) as 0.5 m / 0.5 m stripes;
 road surface from lanelet boundaries; drives along chained lanelet centre lines."""
 
 import logging
@@ -20,8 +20,13 @@ from services.sim.osm import read_osm
 logger = logging.getLogger(__name__)
 
 LINE_WIDTH_M = {"line_thin": paint.LINE_THIN_M, "line_thick": paint.LINE_THICK_M}
-LINE_STYLES = {"solid": "solid", "dashed": "dashed", "solid_solid": "double",
-               "solid_dashed": "solid_dashed", "dashed_solid": "dashed_solid"}
+LINE_STYLES = {
+    "solid": "solid",
+    "dashed": "dashed",
+    "solid_solid": "double",
+    "solid_dashed": "solid_dashed",
+    "dashed_solid": "dashed_solid",
+}
 DRIVABLE = ("road", "highway", "bicycle_lane")
 DRIVEN = ("road", "highway")
 CROSSING_TYPES = ("pedestrian_marking", "zebra_marking")
@@ -32,11 +37,17 @@ def load_lanelet2(path, seed: int = 0) -> World:
     latlon = np.array(list(osm.nodes.values()))
     lat0, lon0 = (latlon.min(axis=0) + latlon.max(axis=0)) / 2.0
     xy = _node_xy(osm, lat0, lon0)
-    way_xy = {w: paint.dedupe(np.array([xy[n] for n in refs if n in xy]))
-              for w, (refs, _) in osm.ways.items()}
+    way_xy = {
+        w: paint.dedupe(np.array([xy[n] for n in refs if n in xy]))
+        for w, (refs, _) in osm.ways.items()
+    }
     lanelets = _lanelets(osm, way_xy)
-    markings = [Marking(Cls.ROAD, quad, "road") for left, right, tags in lanelets
-                if tags.get("subtype") in DRIVABLE for quad in _surface(left, right)]
+    markings = [
+        Marking(Cls.ROAD, quad, "road")
+        for left, right, tags in lanelets
+        if tags.get("subtype") in DRIVABLE
+        for quad in _surface(left, right)
+    ]
     markings += _line_markings(osm, way_xy)
     markings += _crossings(osm, way_xy)
     lanes = _directed_centrelines(lanelets)
@@ -44,18 +55,28 @@ def load_lanelet2(path, seed: int = 0) -> World:
     if not drives:
         raise WorldError(f"{path}: no drivable lanelets")
     km = routes.km_of_centrelines([c for c, _ in _centrelines(lanelets)])
-    logger.info("lanelet2 %s: %d markings, %.2f km of road, %d drives", Path(path).name,
-                len(markings), km, len(drives))
-    return World(name=f"lanelet2:{Path(path).stem}", markings=markings, routes=drives,
-                 gnss_blocked=routes.blocked_zone_along(drives[0]), km_of_road=km,
-                 origin_latlon=(float(lat0), float(lon0)))
+    logger.info(
+        "lanelet2 %s: %d markings, %.2f km of road, %d drives",
+        Path(path).name,
+        len(markings),
+        km,
+        len(drives),
+    )
+    return World(
+        name=f"lanelet2:{Path(path).stem}",
+        markings=markings,
+        routes=drives,
+        gnss_blocked=routes.blocked_zone_along(drives[0]),
+        km_of_road=km,
+        origin_latlon=(float(lat0), float(lon0)),
+    )
 
 
 def _node_xy(osm, lat0, lon0) -> dict[int, np.ndarray]:
     ids = list(osm.nodes)
     ll = np.array([osm.nodes[i] for i in ids])
     x, y = latlon_to_local_m(ll[:, 0], ll[:, 1], lat0, lon0)
-    return {i: np.array([a, b]) for i, a, b in zip(ids, x, y)}
+    return {i: np.array([a, b]) for i, a, b in zip(ids, x, y, strict=False)}
 
 
 def _lanelets(osm, way_xy):
@@ -82,7 +103,9 @@ def _lanelets(osm, way_xy):
 
 def _surface(left, right, step_m: float = 2.0) -> list[np.ndarray]:
     """Road surface between two boundaries as a strip of quads (robust to odd lanelet shapes)."""
-    n = max(2, int(math.ceil(max(paint.arc_length(left)[-1], paint.arc_length(right)[-1]) / step_m)))
+    n = max(
+        2, int(math.ceil(max(paint.arc_length(left)[-1], paint.arc_length(right)[-1]) / step_m))
+    )
     pl, pr = _param(left, n), _param(right, n)
     return [np.stack([pl[i], pl[i + 1], pr[i + 1], pr[i]]) for i in range(n - 1)]
 
@@ -95,7 +118,9 @@ def _reversed(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 def _centreline(left, right, step_m: float = 1.0) -> np.ndarray:
-    n = max(2, int(math.ceil(max(paint.arc_length(left)[-1], paint.arc_length(right)[-1]) / step_m)))
+    n = max(
+        2, int(math.ceil(max(paint.arc_length(left)[-1], paint.arc_length(right)[-1]) / step_m))
+    )
     return 0.5 * (_param(left, n) + _param(right, n))
 
 
@@ -106,7 +131,7 @@ def _param(poly, n):
 
 
 def _centrelines(lanelets):
-    return [(_centreline(l, r), t) for l, r, t in lanelets if t.get("subtype") in DRIVEN]
+    return [(_centreline(lb, rb), t) for lb, rb, t in lanelets if t.get("subtype") in DRIVEN]
 
 
 def _directed_centrelines(lanelets) -> list[np.ndarray]:
@@ -135,8 +160,11 @@ def _line_markings(osm, way_xy) -> list[Marking]:
 def _crossings(osm, way_xy) -> list[Marking]:
     """Pair crossing edges (parallel, 1.5-8 m apart, overlapping) and stripe between them;
     an edge without a partner becomes a 3 m deep crossing on the side its nearest road is not."""
-    ways = [w for w, (_, t) in osm.ways.items() if t.get("type") in CROSSING_TYPES
-            and len(way_xy[w]) >= 2]
+    ways = [
+        w
+        for w, (_, t) in osm.ways.items()
+        if t.get("type") in CROSSING_TYPES and len(way_xy[w]) >= 2
+    ]
     partner = {}
     for a in ways:
         best = None

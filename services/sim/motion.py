@@ -41,22 +41,38 @@ class Trajectory:
         return np.interp(t_s, self.t_s, getattr(self, what))
 
 
-def driven_path(route: np.ndarray, rng, *, max_len_m: float | None, step_m: float = 0.5,
-                offset_m: float = 0.0, wobble_m: float = 0.25) -> np.ndarray:
+def driven_path(
+    route: np.ndarray,
+    rng,
+    *,
+    max_len_m: float | None,
+    step_m: float = 0.5,
+    offset_m: float = 0.0,
+    wobble_m: float = 0.25,
+) -> np.ndarray:
     """The path the car drives: the route shifted sideways by offset_m plus a slow wobble, then
     followed by a pure-pursuit driver whose curvature is limited to a car's turning circle."""
     line = paint.resample(paint.remove_cusps(route), step_m)
     if max_len_m is not None:
         line = line[: max(2, int(max_len_m / step_m) + 1)]
     s = np.arange(len(line)) * step_m
-    wobble = sum(wobble_m / 2 * math.sqrt(1 / (k + 1)) * np.sin(2 * np.pi * s / lam + ph)
-                 for k, (lam, ph) in enumerate(zip(rng.uniform(60, 300, 3), rng.uniform(0, 6.3, 3))))
+    wobble = sum(
+        wobble_m / 2 * math.sqrt(1 / (k + 1)) * np.sin(2 * np.pi * s / lam + ph)
+        for k, (lam, ph) in enumerate(
+            zip(rng.uniform(60, 300, 3), rng.uniform(0, 6.3, 3), strict=False)
+        )
+    )
     line = line + (offset_m + wobble)[:, None] * paint.normals(line)
     return pure_pursuit(line, step_m=step_m)
 
 
-def pure_pursuit(line: np.ndarray, *, step_m: float = 0.5, lookahead_m: float = 5.0,
-                 max_kappa: float = 1.0 / MIN_TURN_RADIUS_M) -> np.ndarray:
+def pure_pursuit(
+    line: np.ndarray,
+    *,
+    step_m: float = 0.5,
+    lookahead_m: float = 5.0,
+    max_kappa: float = 1.0 / MIN_TURN_RADIUS_M,
+) -> np.ndarray:
     """Positions (N, 2) every step_m of a kinematic car tracking `line` (points every step_m)."""
     if len(line) < 3:
         return line
@@ -65,7 +81,7 @@ def pure_pursuit(line: np.ndarray, *, step_m: float = 0.5, lookahead_m: float = 
     x, y, th = float(line[0, 0]), float(line[0, 1]), math.atan2(d0[1], d0[0])
     idx, out = 0, [(x, y)]
     for _ in range(3 * len(line)):
-        window = line[idx: idx + 4 * ahead]
+        window = line[idx : idx + 4 * ahead]
         idx += int(np.argmin(np.sum((window - (x, y)) ** 2, axis=1)))
         if idx >= len(line) - 2:
             break
@@ -84,13 +100,15 @@ def pure_pursuit(line: np.ndarray, *, step_m: float = 0.5, lookahead_m: float = 
     return np.array(out)
 
 
-def speed_profile(s: np.ndarray, kappa: np.ndarray, rng, *, v_min: float = 8.0,
-                  v_max: float = 15.0) -> np.ndarray:
+def speed_profile(
+    s: np.ndarray, kappa: np.ndarray, rng, *, v_min: float = 8.0, v_max: float = 15.0
+) -> np.ndarray:
     """Target speed per station: a cruise speed that drifts in [v_min, v_max], capped by
     sqrt(a_lat / kappa) in curves, then limited by acceleration and braking."""
     n = len(s)
-    cruise = np.interp(s, np.linspace(0, s[-1], 8) if s[-1] > 0 else np.zeros(8),
-                       rng.uniform(v_min, v_max, 8))
+    cruise = np.interp(
+        s, np.linspace(0, s[-1], 8) if s[-1] > 0 else np.zeros(8), rng.uniform(v_min, v_max, 8)
+    )
     v = np.minimum(cruise, np.sqrt(A_LAT_MAX / np.maximum(np.abs(kappa), 1e-6)))
     v[0] = V_START
     ds = np.diff(s)
@@ -110,8 +128,14 @@ def curvature(path: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return s, yaw, kappa
 
 
-def drive(route: np.ndarray, rng, *, max_len_m: float | None = None, offset_m: float = 0.0,
-          rate_hz: float = 100.0) -> Trajectory:
+def drive(
+    route: np.ndarray,
+    rng,
+    *,
+    max_len_m: float | None = None,
+    offset_m: float = 0.0,
+    rate_hz: float = 100.0,
+) -> Trajectory:
     """Drive a route: path, speed profile, then time-sample it at rate_hz."""
     path = driven_path(route, rng, max_len_m=max_len_m, offset_m=offset_m)
     s, yaw, kappa = curvature(path)

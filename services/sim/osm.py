@@ -27,7 +27,9 @@ def read_osm(path) -> OsmMap:
         elif el.tag == "way":
             osm.ways[int(el.get("id"))] = ([int(n.get("ref")) for n in el.findall("nd")], tags)
         elif el.tag == "relation":
-            members = [(m.get("type"), int(m.get("ref")), m.get("role")) for m in el.findall("member")]
+            members = [
+                (m.get("type"), int(m.get("ref")), m.get("role")) for m in el.findall("member")
+            ]
             osm.relations[int(el.get("id"))] = (members, tags)
     if not osm.nodes:
         raise WorldError(f"{path}: no nodes")

@@ -1,7 +1,7 @@
 """Road-paint geometry: polylines (N, 2) in metres -> filled marking polygons.
 
 Lane lines as strips (solid, dashed with a real dash/gap, double), stop lines, zebra crosswalks
-(stripes along the walking direction), arrow glyphs and text blocks. Left of a polyline is +normal."""
+(stripes along the walking direction), arrow glyphs and text blocks. Left of a polyline: +normal."""
 
 import math
 
@@ -105,8 +105,14 @@ def dashes(poly: np.ndarray, width_m: float, dash_m: float, gap_m: float, phase_
     return out
 
 
-def line_polygons(poly: np.ndarray, style: str, width_m: float = LINE_THIN_M,
-                  dash_m: float = 3.0, gap_m: float = 6.0, phase_m: float = 0.0) -> list:
+def line_polygons(
+    poly: np.ndarray,
+    style: str,
+    width_m: float = LINE_THIN_M,
+    dash_m: float = 3.0,
+    gap_m: float = 6.0,
+    phase_m: float = 0.0,
+) -> list:
     """Lane line of a style: solid | dashed | double (two solids) | solid_dashed | dashed_solid."""
     half = (width_m + DOUBLE_GAP_M) / 2.0
     if style == "solid":
@@ -127,8 +133,12 @@ def line_markings(poly, style, width_m=LINE_THIN_M, dash_m=3.0, gap_m=6.0, phase
     return [Marking(Cls.LANE_LINE, p, style) for p in polys]
 
 
-def zebra(left: np.ndarray, right: np.ndarray, stripe_m: float = ZEBRA_STRIPE_M,
-          gap_m: float = ZEBRA_GAP_M) -> list[Marking]:
+def zebra(
+    left: np.ndarray,
+    right: np.ndarray,
+    stripe_m: float = ZEBRA_STRIPE_M,
+    gap_m: float = ZEBRA_GAP_M,
+) -> list[Marking]:
     """Zebra stripes between two boundaries that run along the walking direction.
 
     Each stripe spans from the left to the right boundary and is stripe_m long in the walking
@@ -151,7 +161,7 @@ def zebra(left: np.ndarray, right: np.ndarray, stripe_m: float = ZEBRA_STRIPE_M,
 
 
 def zebra_across(center_a: np.ndarray, center_b: np.ndarray, depth_m: float = 4.0) -> list:
-    """Zebra crossing whose walking line runs from center_a to center_b, depth_m deep along traffic."""
+    """Zebra crossing walked from center_a to center_b, depth_m deep along the traffic."""
     a, b = np.asarray(center_a, float), np.asarray(center_b, float)
     d = (b - a) / max(np.linalg.norm(b - a), 1e-9)
     n = np.array([-d[1], d[0]]) * depth_m / 2.0
@@ -169,10 +179,30 @@ def place(local_xy: np.ndarray, x: float, y: float, yaw: float) -> np.ndarray:
 
 # Arrow glyphs in a local frame: x along the driving direction (tip at +x), y left; metres.
 ARROWS = {
-    "arrow_straight": np.array([(-2.5, -0.08), (1.0, -0.08), (1.0, -0.35), (2.5, 0.0),
-                                (1.0, 0.35), (1.0, 0.08), (-2.5, 0.08)]),
-    "arrow_left": np.array([(-2.5, -0.08), (1.08, -0.08), (1.08, 0.5), (1.35, 0.5), (1.0, 1.2),
-                            (0.65, 0.5), (0.92, 0.5), (0.92, 0.08), (-2.5, 0.08)]),
+    "arrow_straight": np.array(
+        [
+            (-2.5, -0.08),
+            (1.0, -0.08),
+            (1.0, -0.35),
+            (2.5, 0.0),
+            (1.0, 0.35),
+            (1.0, 0.08),
+            (-2.5, 0.08),
+        ]
+    ),
+    "arrow_left": np.array(
+        [
+            (-2.5, -0.08),
+            (1.08, -0.08),
+            (1.08, 0.5),
+            (1.35, 0.5),
+            (1.0, 1.2),
+            (0.65, 0.5),
+            (0.92, 0.5),
+            (0.92, 0.08),
+            (-2.5, 0.08),
+        ]
+    ),
 }
 ARROWS["arrow_right"] = ARROWS["arrow_left"][::-1] * [1.0, -1.0]
 
@@ -181,8 +211,9 @@ def arrow(kind: str, x: float, y: float, yaw: float, scale: float = 1.0) -> Mark
     return Marking(Cls.GROUND_SIGN, place(ARROWS[kind] * scale, x, y, yaw), kind)
 
 
-def text_block(text: str, x: float, y: float, yaw: float, height_m: float = 2.4,
-               width_m: float = 2.6) -> list[Marking]:
+def text_block(
+    text: str, x: float, y: float, yaw: float, height_m: float = 2.4, width_m: float = 2.6
+) -> list[Marking]:
     """Road text read by an approaching driver: letters elongated along the driving direction.
 
     Glyph outlines come from a Hershey font, rasterized and traced (outer contours)."""

@@ -28,8 +28,12 @@ class MarkingIndex:
     def rasterize(self, x0_m: float, y0_m: float, rows: int, cols: int, cell_m: float = CELL_M):
         raster = np.zeros((rows, cols), np.uint8)
         x1, y1 = x0_m + cols * cell_m, y0_m + rows * cell_m
-        hit = np.flatnonzero((self.hi[:, 0] >= x0_m) & (self.lo[:, 0] <= x1)
-                             & (self.hi[:, 1] >= y0_m) & (self.lo[:, 1] <= y1))
+        hit = np.flatnonzero(
+            (self.hi[:, 0] >= x0_m)
+            & (self.lo[:, 0] <= x1)
+            & (self.hi[:, 1] >= y0_m)
+            & (self.lo[:, 1] <= y1)
+        )
         scale = (1 << SUBPIXEL_BITS) / cell_m
         half = (1 << SUBPIXEL_BITS) * 0.5
         for i in hit[np.argsort(self.order[hit], kind="stable")]:
@@ -42,8 +46,9 @@ class TileCache:
     """Label tiles (TILE_CELLS square at cell_m) on a global tile grid, rasterized on demand,
     and stitched windows of (2k+1)^2 tiles around a point."""
 
-    def __init__(self, world: World, radius_tiles: int = 2, max_tiles: int = 400,
-                 cell_m: float = CELL_M):
+    def __init__(
+        self, world: World, radius_tiles: int = 2, max_tiles: int = 400, cell_m: float = CELL_M
+    ):
         self.index = MarkingIndex(world)
         self.cell_m = cell_m
         self.k = radius_tiles
@@ -58,8 +63,9 @@ class TileCache:
             if len(self.tiles) >= self.max_tiles:
                 self.tiles.pop(next(iter(self.tiles)))
             size = TILE_CELLS * self.cell_m
-            self.tiles[key] = self.index.rasterize(tx * size, ty * size, TILE_CELLS, TILE_CELLS,
-                                                   self.cell_m)
+            self.tiles[key] = self.index.rasterize(
+                tx * size, ty * size, TILE_CELLS, TILE_CELLS, self.cell_m
+            )
         return self.tiles[key]
 
     def window(self, x_m: float, y_m: float):
@@ -71,8 +77,9 @@ class TileCache:
             out = np.empty((n * TILE_CELLS, n * TILE_CELLS), np.uint8)
             for j in range(n):
                 for i in range(n):
-                    out[j * TILE_CELLS:(j + 1) * TILE_CELLS, i * TILE_CELLS:(i + 1) * TILE_CELLS] = \
-                        self.tile(tx - self.k + i, ty - self.k + j)
+                    out[
+                        j * TILE_CELLS : (j + 1) * TILE_CELLS, i * TILE_CELLS : (i + 1) * TILE_CELLS
+                    ] = self.tile(tx - self.k + i, ty - self.k + j)
             self._window_key = (tx, ty)
             self._window = (out, (tx - self.k) * size, (ty - self.k) * size)
         return self._window

@@ -29,7 +29,7 @@ class GroundRays:
 
     def __init__(self, camera: CameraModel):
         self.width, self.height = camera.width, camera.height
-        v, u = np.mgrid[0:camera.height, 0:camera.width]
+        v, u = np.mgrid[0 : camera.height, 0 : camera.width]
         uv = np.stack([u.ravel() + 0.5, v.ravel() + 0.5], axis=1).astype(np.float64)
         norm = undistort_normalized(uv, camera.K, camera.dist)
         self.xc = norm[:, 0].reshape(camera.height, camera.width).astype(np.float32)
@@ -64,8 +64,13 @@ class FrameGeometry:
 class LabelRenderer:
     """True label images: the world's labels seen through the camera (0 above the horizon)."""
 
-    def __init__(self, world: World, camera: CameraModel, cell_m: float = LABEL_CELL_M,
-                 range_m: float = 100.0):
+    def __init__(
+        self,
+        world: World,
+        camera: CameraModel,
+        cell_m: float = LABEL_CELL_M,
+        range_m: float = 100.0,
+    ):
         self.rays = GroundRays(camera)
         radius = int(np.ceil(range_m / (TILE_CELLS * cell_m)))
         self.tiles = TileCache(world, radius_tiles=radius, cell_m=cell_m)
@@ -86,8 +91,9 @@ class LabelRenderer:
         mx = np.where(geo.ground, (geo.wx - np.float32(x0)) * inv - 0.5, -10.0)
         my = np.where(geo.ground, (geo.wy - np.float32(y0)) * inv - 0.5, -10.0)
         mx, my = mx.astype(np.float32), my.astype(np.float32)
-        lab = cv2.remap(window, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                        borderValue=0)
+        lab = cv2.remap(
+            window, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+        )
         return lab, geo, (window, mx, my)
 
 
@@ -98,7 +104,7 @@ def _noise_texture(rng, size: int, blur_px: float, lo: float, hi: float) -> np.n
     """Tileable smooth noise in [lo, hi] (float32), wrapped so remap can use BORDER_WRAP."""
     n = rng.normal(size=(size, size)).astype(np.float32)
     if blur_px > 0:
-        n = cv2.GaussianBlur(np.tile(n, (3, 3)), (0, 0), blur_px)[size:2 * size, size:2 * size]
+        n = cv2.GaussianBlur(np.tile(n, (3, 3)), (0, 0), blur_px)[size : 2 * size, size : 2 * size]
     n = (n - n.min()) / max(float(n.max() - n.min()), 1e-6)
     return (lo + (hi - lo) * n).astype(np.float32)
 
@@ -114,7 +120,9 @@ def _shadow_texture(rng, size: int, res_m: float, density: float) -> np.ndarray:
         x, y = int(rng.integers(size)), int(rng.integers(size))
         w, h = int(rng.uniform(8, 40) / res_m), int(rng.uniform(4, 20) / res_m)
         cv2.rectangle(img, (x, y), (x + w, y + h), 1.0, -1)
-    img = cv2.GaussianBlur(np.tile(img, (3, 3)), (0, 0), 0.4 / res_m)[size:2 * size, size:2 * size]
+    img = cv2.GaussianBlur(np.tile(img, (3, 3)), (0, 0), 0.4 / res_m)[
+        size : 2 * size, size : 2 * size
+    ]
     return np.clip(img, 0.0, 1.0)
 
 
@@ -139,41 +147,72 @@ class Appearance:
         g = rng.uniform(75, 125)
         tint = rng.uniform(-6, 6, 3)
         self.asphalt_rgb = np.array([g, g, g + rng.uniform(0, 6)]) + tint
-        grounds = [np.array([70, 105, 55]), np.array([150, 148, 140]), np.array([120, 100, 75]),
-                   np.array([95, 95, 90]), np.array([60, 85, 45])]
+        grounds = [
+            np.array([70, 105, 55]),
+            np.array([150, 148, 140]),
+            np.array([120, 100, 75]),
+            np.array([95, 95, 90]),
+            np.array([60, 85, 45]),
+        ]
         pick = rng.choice(len(grounds), 2, replace=False)
         self.offroad_rgb = grounds[pick[0]] * rng.uniform(0.8, 1.15)
         self.offroad2_rgb = grounds[pick[1]] * rng.uniform(0.8, 1.15)
-        self.paint_rgb = (np.array([235, 235, 228]) if rng.random() < 0.8
-                          else np.array([230, 222, 175])) * rng.uniform(0.85, 1.0)  # aged: yellowish
+        self.paint_rgb = (
+            np.array([235, 235, 228]) if rng.random() < 0.8 else np.array([230, 222, 175])
+        ) * rng.uniform(0.85, 1.0)  # aged: yellowish
         self.fade = rng.uniform(0.45, 1.0)  # how much of the paint is left
         self.wear_level = rng.uniform(0.0, 0.3)  # worn fraction of paint
         self.gain = rng.uniform(0.65, 1.3)
         self.gain_wobble = rng.uniform(0.0, 0.15)  # clouds
         self.colour_cast = rng.uniform(0.92, 1.08, 3)
         self.shadow_strength = rng.uniform(0.0, 0.6) if rng.random() < 0.8 else 0.0
-        self.sky_top = np.array([70, 120, 200]) * rng.uniform(0.7, 1.2) if rng.random() < 0.6 \
+        self.sky_top = (
+            np.array([70, 120, 200]) * rng.uniform(0.7, 1.2)
+            if rng.random() < 0.6
             else np.array([170, 175, 180]) * rng.uniform(0.8, 1.1)
+        )
         self.haze_rgb = np.clip(self.sky_top * 0.5 + 110, 0, 255)
         self.fog_m = rng.uniform(60.0, 250.0)
         self.blur_prob = rng.uniform(0.0, 0.4)
         self.noise_sigma = rng.uniform(1.5, 7.0)
         # two-channel world-anchored textures: (grain, paint wear) at 4 cm, (blotches, roadside
         # mix) at 0.5 m
-        self.fine = cv2.merge([_noise_texture(rng, 256, 0.7, 0.82, 1.18),
-                               _noise_texture(rng, 256, 1.5, 0.0, 1.0)])
-        self.coarse = cv2.merge([_noise_texture(rng, 256, 6.0, 0.8, 1.2),
-                                 _noise_texture(rng, 256, 12.0, 0.0, 1.0)])
+        self.fine = cv2.merge(
+            [_noise_texture(rng, 256, 0.7, 0.82, 1.18), _noise_texture(rng, 256, 1.5, 0.0, 1.0)]
+        )
+        self.coarse = cv2.merge(
+            [_noise_texture(rng, 256, 6.0, 0.8, 1.2), _noise_texture(rng, 256, 12.0, 0.0, 1.0)]
+        )
         self.curb_rgb = np.array([185, 183, 178]) * rng.uniform(0.8, 1.1)
         self.curb = rng.random() < 0.7
         self.shadow = _shadow_texture(rng, 512, 0.25, rng.uniform(0.3, 1.5))
         self.skyline_elev = self._skyline(rng)
-        palette = np.array([[120, 118, 115], [150, 140, 125], [140, 95, 80], [95, 100, 105],
-                            [175, 170, 160], [60, 80, 55], [45, 65, 45], [110, 105, 95]], float)
-        self.skyline_rgb = (palette[rng.integers(len(palette), size=64)]
-                            * rng.uniform(0.75, 1.2, (64, 1)))
-        for name in ("asphalt_rgb", "offroad_rgb", "offroad2_rgb", "paint_rgb", "sky_top",
-                     "haze_rgb", "skyline_rgb", "curb_rgb"):
+        palette = np.array(
+            [
+                [120, 118, 115],
+                [150, 140, 125],
+                [140, 95, 80],
+                [95, 100, 105],
+                [175, 170, 160],
+                [60, 80, 55],
+                [45, 65, 45],
+                [110, 105, 95],
+            ],
+            float,
+        )
+        self.skyline_rgb = palette[rng.integers(len(palette), size=64)] * rng.uniform(
+            0.75, 1.2, (64, 1)
+        )
+        for name in (
+            "asphalt_rgb",
+            "offroad_rgb",
+            "offroad2_rgb",
+            "paint_rgb",
+            "sky_top",
+            "haze_rgb",
+            "skyline_rgb",
+            "curb_rgb",
+        ):
             setattr(self, name, (getattr(self, name) * self.colour_cast).astype(np.float32))
 
     @staticmethod
@@ -187,7 +226,7 @@ class Appearance:
             h = math.radians(rng.uniform(1.0, 14.0)) if kind < 0.7 else 0.0
             if kind > 0.85:  # trees: rounded
                 h = math.radians(rng.uniform(3, 10)) * np.sin(np.linspace(0, np.pi, w)) ** 0.5
-            elev[i:i + w] = h if np.isscalar(h) else h[: len(elev[i:i + w])]
+            elev[i : i + w] = h if np.isscalar(h) else h[: len(elev[i : i + w])]
             i += w
         return elev
 
@@ -201,12 +240,14 @@ class FrameRenderer:
         self.labeler = LabelRenderer(world, camera)
         self.camera = camera
         self.h, self.w = camera.height, camera.width
-        yy, xx = np.mgrid[0:self.h, 0:self.w].astype(np.float32)
+        yy, xx = np.mgrid[0 : self.h, 0 : self.w].astype(np.float32)
         r2 = ((xx - self.w / 2) / self.w) ** 2 + ((yy - self.h / 2) / self.h) ** 2
         self.vignette = cv2.merge([(1.0 - 0.35 * r2).astype(np.float32)] * 3)
         self._surface_cache = None
-        self.noise = [self.rng.normal(0, self.look.noise_sigma, (self.h, self.w, 3)).astype(np.float32)
-                      for _ in range(4)]
+        self.noise = [
+            self.rng.normal(0, self.look.noise_sigma, (self.h, self.w, 3)).astype(np.float32)
+            for _ in range(4)
+        ]
 
     def _surface_window(self, window):
         """(road, paint, curb) masks of the label window as one 3-channel uint8 image, so that a
@@ -270,8 +311,11 @@ class FrameRenderer:
         # per colour plane: (H, W) x scalar ops are far cheaper than (H, W, 1) x (3,) broadcasts
         planes = []
         for c in range(3):
-            ground = (off * (look.offroad_rgb[c] + (look.offroad2_rgb[c] - look.offroad_rgb[c]) * mix)
-                      + road * look.asphalt_rgb[c] + curb * look.curb_rgb[c])
+            ground = (
+                off * (look.offroad_rgb[c] + (look.offroad2_rgb[c] - look.offroad_rgb[c]) * mix)
+                + road * look.asphalt_rgb[c]
+                + curb * look.curb_rgb[c]
+            )
             planes.append(ground * a + look.paint_rgb[c] * b + look.haze_rgb[c] * fog)
         return planes
 
@@ -300,8 +344,9 @@ class FrameRenderer:
     def _vehicle_items(self, pose, T_vehicle_camera, vehicles):
         """(image hull int32, vehicle, corner pixels) of other vehicles, far to near; vehicles
         partly behind the camera are skipped."""
-        cam = CameraModel(self.camera.width, self.camera.height, self.camera.K, self.camera.dist,
-                          T_vehicle_camera)
+        cam = CameraModel(
+            self.camera.width, self.camera.height, self.camera.K, self.camera.dist, T_vehicle_camera
+        )
         out = []
         for v in sorted(vehicles, key=lambda v: -_ego_dist(v, pose)):
             corners = _box_corners(v, pose)
@@ -325,8 +370,11 @@ class FrameRenderer:
             for k in np.argsort(dist)[1::-1]:  # the two nearest faces, farther first
                 i, j = faces[k]
                 shade = 0.75 + 0.25 * k % 2
-                for lo, hi, col in ((0.0, 1.0, body * shade), (0.62, 0.95, body * 0.2 + 25),
-                                    (0.05, 0.25, body * 0.25 + 10)):
+                for lo, hi, col in (
+                    (0.0, 1.0, body * shade),
+                    (0.62, 0.95, body * 0.2 + 25),
+                    (0.05, 0.25, body * 0.25 + 10),
+                ):
                     quad = _band(uv, i, j, lo, hi)
                     cv2.fillPoly(rgb, [np.round(quad).astype(np.int32)], col.tolist())
             cv2.fillPoly(lab, [hull], 0)
@@ -350,13 +398,15 @@ def _ego_dist(v: Vehicle, pose) -> float:
 def _band(uv: np.ndarray, i: int, j: int, lo: float, hi: float) -> np.ndarray:
     """Image quad of a horizontal band (fractions lo..hi of the height) of the face i-j."""
     bi, bj, ti, tj = uv[i], uv[j], uv[i + 4], uv[j + 4]
-    return np.stack([bi + lo * (ti - bi), bj + lo * (tj - bj), bj + hi * (tj - bj), bi + hi * (ti - bi)])
+    return np.stack(
+        [bi + lo * (ti - bi), bj + lo * (tj - bj), bj + hi * (tj - bj), bi + hi * (ti - bi)]
+    )
 
 
 def _box_corners(v: Vehicle, pose) -> np.ndarray:
     """8 corners (bottom 4, then top 4) of a vehicle box in the ego vehicle frame."""
-    l, w = v.length / 2, v.width / 2
-    base = np.array([[l, w], [l, -w], [-l, -w], [-l, w]])
+    hl, hw = v.length / 2, v.width / 2
+    base = np.array([[hl, hw], [hl, -hw], [-hl, -hw], [-hl, hw]])
     c, s = math.cos(v.yaw), math.sin(v.yaw)
     pts = base @ np.array([[c, s], [-s, c]]) + [v.x, v.y]
     if not v.relative:

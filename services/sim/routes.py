@@ -8,14 +8,22 @@ import numpy as np
 from services.sim import paint
 
 
-def chain_lanes(lanes: list[np.ndarray], rng, *, join_m: float = 1.5, max_turn_deg: float = 70.0,
-                uturn_m: float = 30.0, min_len_m: float = 200.0, max_routes: int = 6,
-                max_len_m: float = 4000.0) -> list[np.ndarray]:
+def chain_lanes(
+    lanes: list[np.ndarray],
+    rng,
+    *,
+    join_m: float = 1.5,
+    max_turn_deg: float = 70.0,
+    uturn_m: float = 30.0,
+    min_len_m: float = 200.0,
+    max_routes: int = 6,
+    max_len_m: float = 4000.0,
+) -> list[np.ndarray]:
     """Directed lane centre lines -> long drives. A walk goes from a lane to a successor (end meets
     start within join_m, heading change below max_turn_deg), least-visited first; at a dead end it
     U-turns onto an opposite lane starting within uturn_m. Joins are smooth Bezier curves."""
-    starts = np.array([l[0] for l in lanes])
-    heads = np.array([_heading(l, start=True) for l in lanes])
+    starts = np.array([lane[0] for lane in lanes])
+    heads = np.array([_heading(lane, start=True) for lane in lanes])
     succ = []
     for lane in lanes:
         d = np.linalg.norm(starts - lane[-1], axis=1)
@@ -53,7 +61,7 @@ def chain_lanes(lanes: list[np.ndarray], rng, *, join_m: float = 1.5, max_turn_d
 def _join(lanes: list[np.ndarray]) -> np.ndarray:
     """Concatenate lanes; gaps are bridged by a cubic Bezier along both headings."""
     pts = [lanes[0]]
-    for prev, nxt in zip(lanes[:-1], lanes[1:]):
+    for prev, nxt in zip(lanes[:-1], lanes[1:], strict=False):
         p0, p3 = prev[-1], nxt[0]
         gap = float(np.linalg.norm(p3 - p0))
         if gap > 0.3:
@@ -63,8 +71,9 @@ def _join(lanes: list[np.ndarray]) -> np.ndarray:
             r = 0.6 * gap + 2.0
             t = np.linspace(0.0, 1.0, max(4, int(gap * 2)))[1:-1, None]
             p1, p2 = p0 + r * d0, p3 - r * d3
-            pts.append((1 - t) ** 3 * p0 + 3 * (1 - t) ** 2 * t * p1 + 3 * (1 - t) * t**2 * p2
-                       + t**3 * p3)
+            pts.append(
+                (1 - t) ** 3 * p0 + 3 * (1 - t) ** 2 * t * p1 + 3 * (1 - t) * t**2 * p2 + t**3 * p3
+            )
         pts.append(nxt)
     return paint.dedupe(np.concatenate(pts), eps=0.05)
 
@@ -85,20 +94,22 @@ def km_of_centrelines(lanes: list[np.ndarray], *, merge_m: float = 4.5, step_m: 
     cell = merge_m
     buckets: dict[tuple[int, int], list[tuple[float, float, float]]] = {}
     total = 0.0
-    for lane in sorted(lanes, key=lambda l: -paint.arc_length(l)[-1]):
+    for lane in sorted(lanes, key=lambda c: -paint.arc_length(c)[-1]):
         pts = paint.resample(lane, step_m)
         if len(pts) < 2:
             continue
         d = np.gradient(pts, axis=0)
         yaws = np.arctan2(d[:, 1], d[:, 0])
         new = []
-        for (x, y), yaw in zip(pts[:-1], yaws[:-1]):
+        for (x, y), yaw in zip(pts[:-1], yaws[:-1], strict=False):
             cx, cy = int(x // cell), int(y // cell)
             dup = False
             for i in (cx - 1, cx, cx + 1):
                 for j in (cy - 1, cy, cy + 1):
                     for px, py, pyaw in buckets.get((i, j), ()):
-                        if (px - x) ** 2 + (py - y) ** 2 < merge_m**2 and abs(math.cos(pyaw - yaw)) > 0.8:
+                        if (px - x) ** 2 + (py - y) ** 2 < merge_m**2 and abs(
+                            math.cos(pyaw - yaw)
+                        ) > 0.8:
                             dup = True
                             break
                     if dup:
@@ -112,8 +123,14 @@ def km_of_centrelines(lanes: list[np.ndarray], *, merge_m: float = 4.5, step_m: 
     return total / 1000.0
 
 
-def blocked_zone_along(route: np.ndarray, *, start_m: float = 250.0, length_m: float = 300.0,
-                       width_m: float = 30.0, piece_m: float = 25.0) -> list[np.ndarray]:
+def blocked_zone_along(
+    route: np.ndarray,
+    *,
+    start_m: float = 250.0,
+    length_m: float = 300.0,
+    width_m: float = 30.0,
+    piece_m: float = 25.0,
+) -> list[np.ndarray]:
     """GNSS-blocked zone: buffers (short pieces, so curves stay simple) around length_m of route,
     starting at or after start_m (drives start with a fix), where the route passes only once
     (a route that comes back along the same road would otherwise lose GNSS twice)."""
@@ -121,7 +138,9 @@ def blocked_zone_along(route: np.ndarray, *, start_m: float = 250.0, length_m: f
     step = 5.0
     samples = paint.resample(route, step)
     best = None
-    for a in np.arange(min(start_m, max(s[-1] - length_m, 0.0)), max(s[-1] - length_m, 0.0) + 1, 50.0):
+    for a in np.arange(
+        min(start_m, max(s[-1] - length_m, 0.0)), max(s[-1] - length_m, 0.0) + 1, 50.0
+    ):
         axis = paint.resample(paint.sub_polyline(route, s, a, min(a + length_m, s[-1])), step)
         d2 = np.min(np.sum((samples[:, None] - axis[None]) ** 2, axis=2), axis=1)
         inside_m = step * np.count_nonzero(d2 < (width_m / 2) ** 2)

@@ -34,12 +34,27 @@ class NoiseProfile:
 
 
 PROFILES = {
-    "mapping": NoiseProfile("mapping", gnss_hz=10.0, gnss_sigma_m=0.02, gnss_bias_m=0.0,
-                            gnss_bias_tau_s=1.0, gnss_reported_sigma_m=0.02, gnss_outages=True),
-    "production": NoiseProfile("production", gnss_hz=5.0, gnss_sigma_m=0.4, gnss_bias_m=1.6,
-                               gnss_bias_tau_s=60.0, gnss_reported_sigma_m=2.5, gnss_outages=False,
-                               odom_scale_error=0.01, gyro_bias_dps=0.05,
-                               calibration_error_deg=0.2),
+    "mapping": NoiseProfile(
+        "mapping",
+        gnss_hz=10.0,
+        gnss_sigma_m=0.02,
+        gnss_bias_m=0.0,
+        gnss_bias_tau_s=1.0,
+        gnss_reported_sigma_m=0.02,
+        gnss_outages=True,
+    ),
+    "production": NoiseProfile(
+        "production",
+        gnss_hz=5.0,
+        gnss_sigma_m=0.4,
+        gnss_bias_m=1.6,
+        gnss_bias_tau_s=60.0,
+        gnss_reported_sigma_m=2.5,
+        gnss_outages=False,
+        odom_scale_error=0.01,
+        gyro_bias_dps=0.05,
+        calibration_error_deg=0.2,
+    ),
 }
 
 

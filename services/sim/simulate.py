@@ -41,10 +41,20 @@ class DriveSummary:
     gnss_outage_s: float
 
 
-def simulate_drives(world: World, out_dir, *, vehicles: int = 1, drives: int = 1,
-                    profile: str = "mapping", seed: int = 0, images: bool = True,
-                    max_km: float | None = None, route=None, camera: CameraModel | None = None,
-                    progress=None) -> list[Path]:
+def simulate_drives(
+    world: World,
+    out_dir,
+    *,
+    vehicles: int = 1,
+    drives: int = 1,
+    profile: str = "mapping",
+    seed: int = 0,
+    images: bool = True,
+    max_km: float | None = None,
+    route=None,
+    camera: CameraModel | None = None,
+    progress=None,
+) -> list[Path]:
     """Write one drive log per (vehicle, drive) into out_dir/<vehicle>-d<drive>/.
 
     Vehicles of a world share its first route (other lanes of the same roads where the world has
@@ -54,23 +64,45 @@ def simulate_drives(world: World, out_dir, *, vehicles: int = 1, drives: int = 1
     if profile not in sensors.PROFILES:
         raise WorldError(f"unknown profile {profile!r} (mapping | production)")
     camera = camera or camera_from_config(CameraConfig())
-    return [_drive_one(world, Path(out_dir), v=v, d=d, vehicles=vehicles, profile=profile,
-                       seed=seed, images=images, max_km=max_km, route=route, camera=camera,
-                       progress=progress)
-            for d in range(drives) for v in range(vehicles)]
+    return [
+        _drive_one(
+            world,
+            Path(out_dir),
+            v=v,
+            d=d,
+            vehicles=vehicles,
+            profile=profile,
+            seed=seed,
+            images=images,
+            max_km=max_km,
+            route=route,
+            camera=camera,
+            progress=progress,
+        )
+        for d in range(drives)
+        for v in range(vehicles)
+    ]
 
 
-def _drive_one(world, out_dir, *, v, d, vehicles, profile, seed, images, max_km, route, camera,
-               progress) -> Path:
+def _drive_one(
+    world, out_dir, *, v, d, vehicles, profile, seed, images, max_km, route, camera, progress
+) -> Path:
     """Drive d of vehicle v: its own seed, time slot and log directory."""
     vehicle = f"{PREFIX[profile]}-{v}"
     slot = d * vehicles + v
     drive_seed = np.random.SeedSequence([seed, v, d, 0 if profile == "mapping" else 1])
     summary = simulate_drive(
-        world, Path(out_dir) / f"{vehicle}-d{d}", vehicle=vehicle,
-        traversal=f"{vehicle}-d{d}-s{seed}", profile=sensors.PROFILES[profile],
-        route=_route_for(world, v, route), camera=camera, rng=np.random.default_rng(drive_seed),
-        images=images, max_km=max_km, t0_s=BASE_TIME_S + seed * 1_000_000 + slot * 3600,
+        world,
+        Path(out_dir) / f"{vehicle}-d{d}",
+        vehicle=vehicle,
+        traversal=f"{vehicle}-d{d}-s{seed}",
+        profile=sensors.PROFILES[profile],
+        route=_route_for(world, v, route),
+        camera=camera,
+        rng=np.random.default_rng(drive_seed),
+        images=images,
+        max_km=max_km,
+        t0_s=BASE_TIME_S + seed * 1_000_000 + slot * 3600,
         progress=progress,
     )
     return summary.path
@@ -95,13 +127,30 @@ def _follows(a: np.ndarray, b: np.ndarray, tol_m: float = 8.0) -> bool:
     return n > 10 and float(np.median(np.linalg.norm(a[:n] - b[:n], axis=1))) < tol_m
 
 
-def simulate_drive(world: World, root: Path, *, vehicle: str, traversal: str,
-                   profile: sensors.NoiseProfile, route: np.ndarray, camera: CameraModel, rng,
-                   images: bool, max_km: float | None, t0_s: int, progress=None) -> DriveSummary:
+def simulate_drive(
+    world: World,
+    root: Path,
+    *,
+    vehicle: str,
+    traversal: str,
+    profile: sensors.NoiseProfile,
+    route: np.ndarray,
+    camera: CameraModel,
+    rng,
+    images: bool,
+    max_km: float | None,
+    t0_s: int,
+    progress=None,
+) -> DriveSummary:
     """One drive: motion, sensors, camera errors, then frame by frame labels (and images)."""
     # 1. true motion along the route, with this drive's lane offset
-    traj = motion.drive(route, rng, max_len_m=None if max_km is None else max_km * 1000.0,
-                        offset_m=float(np.clip(rng.normal(0.0, 0.25), -0.5, 0.5)), rate_hz=TRUTH_HZ)
+    traj = motion.drive(
+        route,
+        rng,
+        max_len_m=None if max_km is None else max_km * 1000.0,
+        offset_m=float(np.clip(rng.normal(0.0, 0.25), -0.5, 0.5)),
+        rate_hz=TRUTH_HZ,
+    )
     t_frame = np.arange(0.0, traj.duration_s, 1.0 / FRAME_HZ)
     poses = traj.poses(t_frame)
     # 2. sensors at their own rates
@@ -116,16 +165,26 @@ def simulate_drive(world: World, root: Path, *, vehicle: str, traversal: str,
     # 4. frames
     renderer = FrameRenderer(world, cam_true, seed=int(rng.integers(2**31)))
     meta = DriveLogMeta(
-        vehicle=vehicle, traversal=traversal, profile=profile.name,
-        world={"name": world.name, "origin_lat": world.origin_latlon[0],
-               "origin_lon": world.origin_latlon[1]},
+        vehicle=vehicle,
+        traversal=traversal,
+        profile=profile.name,
+        world={
+            "name": world.name,
+            "origin_lat": world.origin_latlon[0],
+            "origin_lon": world.origin_latlon[1],
+        },
         camera=camera,
-        notes={"source": "roadmap sim", "odom_scale": scale, "gyro_bias_rps": bias,
-               "calibration_error_rad": [float(c) for c in calib],
-               "vibration_deg": profile.vibration_deg, "images": images},
+        notes={
+            "source": "roadmap sim",
+            "odom_scale": scale,
+            "gyro_bias_rps": bias,
+            "calibration_error_rad": [float(c) for c in calib],
+            "vibration_deg": profile.vibration_deg,
+            "images": images,
+        },
     )
     writer = DriveLogWriter(root, meta)
-    for i, (t, pose) in enumerate(zip(t_frame, poses)):
+    for i, (t, pose) in enumerate(zip(t_frame, poses, strict=False)):
         T = cam_true.perturbed(d_pitch_rad=shake[i, 0], d_roll_rad=shake[i, 1]).T_vehicle_camera
         visible = others(t)
         if images:
@@ -138,14 +197,22 @@ def simulate_drive(world: World, root: Path, *, vehicle: str, traversal: str,
     # 5. streams and meta (log.json last marks the log complete)
     t_truth = np.arange(0.0, traj.duration_s, 1.0 / TRUTH_HZ)
     ns = lambda t: (np.round(np.asarray(t) * NS) + t0_s * NS).astype(np.int64)  # noqa: E731
-    writer.close({
-        "frame_t_ns": ns(t_frame), "frame_pose_true": poses,
-        "odom_t_ns": ns(t_odom), "odom_speed_mps": v_odom,
-        "imu_t_ns": ns(t_imu), "imu_yaw_rate_rps": w_imu,
-        "gnss_t_ns": ns(t_gnss), "gnss_xy_m": xy_gnss, "gnss_sigma_m": sig_gnss,
-        "gnss_ok": ok_gnss,
-        "truth_t_ns": ns(t_truth), "truth_pose": traj.poses(t_truth),
-    })
+    writer.close(
+        {
+            "frame_t_ns": ns(t_frame),
+            "frame_pose_true": poses,
+            "odom_t_ns": ns(t_odom),
+            "odom_speed_mps": v_odom,
+            "imu_t_ns": ns(t_imu),
+            "imu_yaw_rate_rps": w_imu,
+            "gnss_t_ns": ns(t_gnss),
+            "gnss_xy_m": xy_gnss,
+            "gnss_sigma_m": sig_gnss,
+            "gnss_ok": ok_gnss,
+            "truth_t_ns": ns(t_truth),
+            "truth_pose": traj.poses(t_truth),
+        }
+    )
     km = float(np.sum(np.linalg.norm(np.diff(traj.xy, axis=0), axis=1))) / 1000.0
     outage = float((~ok_gnss).sum()) / profile.gnss_hz
     logger.info("%s: %.2f km, %d frames, GNSS outage %.0f s", root.name, km, len(t_frame), outage)
@@ -165,9 +232,17 @@ def _other_vehicles(traj: motion.Trajectory, rng):
             x, y = traj.xy[min(k, len(s) - 1)]
             yaw = traj.yaw[min(k, len(s) - 1)]
             side = rng.uniform(2.9, 3.6)
-            parked.append(Vehicle(x + math.sin(yaw) * side, y - math.cos(yaw) * side, yaw,
-                                  rng.uniform(3.8, 4.8), rng.uniform(1.7, 1.9), rng.uniform(1.4, 1.7),
-                                  _car_colour(rng)))
+            parked.append(
+                Vehicle(
+                    x + math.sin(yaw) * side,
+                    y - math.cos(yaw) * side,
+                    yaw,
+                    rng.uniform(3.8, 4.8),
+                    rng.uniform(1.7, 1.9),
+                    rng.uniform(1.4, 1.7),
+                    _car_colour(rng),
+                )
+            )
     xy_parked = np.array([[p.x, p.y] for p in parked]).reshape(-1, 2)
     lead_on = rng.random(int(traj.duration_s / 10.0) + 2) < 0.35  # lead car present per 10 s
     lead_gap = rng.uniform(10.0, 30.0, len(lead_on))
@@ -177,15 +252,18 @@ def _other_vehicles(traj: motion.Trajectory, rng):
 
     def visible(t: float) -> list:
         x, y = np.interp(t, traj.t_s, traj.xy[:, 0]), np.interp(t, traj.t_s, traj.xy[:, 1])
-        out = [parked[i] for i in np.flatnonzero(np.hypot(xy_parked[:, 0] - x,
-                                                          xy_parked[:, 1] - y) < 60.0)]
+        out = [
+            parked[i]
+            for i in np.flatnonzero(np.hypot(xy_parked[:, 0] - x, xy_parked[:, 1] - y) < 60.0)
+        ]
         k = int(t / 10.0)
         if lead_on[k]:  # the lead car drives our path, gap metres ahead
             at = np.interp(t, traj.t_s, s) + lead_gap[k] + 3.0 * math.sin(0.5 * t)
             if at < s[-1]:
                 lx, ly = np.interp(at, s, traj.xy[:, 0]), np.interp(at, s, traj.xy[:, 1])
-                out.append(Vehicle(lx, ly, float(np.interp(at, s, traj.yaw)), 4.4, 1.8, 1.5,
-                                   lead_col))
+                out.append(
+                    Vehicle(lx, ly, float(np.interp(at, s, traj.yaw)), 4.4, 1.8, 1.5, lead_col)
+                )
         if oncoming_on[k]:  # in the lane to our left, coming towards us
             now = np.interp(t, traj.t_s, s)
             at = np.interp(10.0 * k, traj.t_s, s) + 90.0 - 14.0 * (t - 10.0 * k)
@@ -199,8 +277,16 @@ def _other_vehicles(traj: motion.Trajectory, rng):
     return visible
 
 
-CAR_COLOURS = ((235, 235, 235), (25, 25, 28), (160, 162, 165), (95, 98, 102), (30, 45, 95),
-               (150, 25, 25), (200, 200, 190), (60, 70, 60))
+CAR_COLOURS = (
+    (235, 235, 235),
+    (25, 25, 28),
+    (160, 162, 165),
+    (95, 98, 102),
+    (30, 45, 95),
+    (150, 25, 25),
+    (200, 200, 190),
+    (60, 70, 60),
+)
 
 
 def _car_colour(rng) -> tuple:

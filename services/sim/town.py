@@ -60,7 +60,9 @@ def _bent(a: np.ndarray, b: np.ndarray, amp_m: float) -> np.ndarray:
 def _edges(nodes, nx, ny, rng) -> list[Edge]:
     idx = lambda i, j: j * nx + i  # noqa: E731
     arterial_row = int(rng.integers(ny))
-    pairs = [(idx(i, j), idx(i + 1, j), j == arterial_row) for j in range(ny) for i in range(nx - 1)]
+    pairs = [
+        (idx(i, j), idx(i + 1, j), j == arterial_row) for j in range(ny) for i in range(nx - 1)
+    ]
     pairs += [(idx(i, j), idx(i, j + 1), False) for j in range(ny - 1) for i in range(nx)]
     edges = []
     for a, b, arterial in pairs:
@@ -77,7 +79,9 @@ def _cut_edges(edges, nodes):
     """Cut each centre line where it enters the intersection boxes at its ends."""
     for e in edges:
         s = paint.arc_length(e.center)
-        e.center = paint.sub_polyline(e.center, s, _box_half(edges, e.a), s[-1] - _box_half(edges, e.b))
+        e.center = paint.sub_polyline(
+            e.center, s, _box_half(edges, e.a), s[-1] - _box_half(edges, e.b)
+        )
 
 
 def _road_markings(e: Edge, rng, crosswalk_ends: set) -> list[Marking]:
@@ -98,13 +102,23 @@ def _road_markings(e: Edge, rng, crosswalk_ends: set) -> list[Marking]:
     else:
         out += paint.line_markings(body, "double")
         for side in (-1, 1):
-            out += paint.line_markings(paint.offset(body, side * LANE_W_M), "dashed", 0.15, 6.0, 12.0)
+            out += paint.line_markings(
+                paint.offset(body, side * LANE_W_M), "dashed", 0.15, 6.0, 12.0
+            )
     for side in (-1, 1):
-        out += paint.line_markings(paint.offset(body, side * (n * LANE_W_M + 0.1)), "solid",
-                                   EDGE_LINE_M)
+        out += paint.line_markings(
+            paint.offset(body, side * (n * LANE_W_M + 0.1)), "solid", EDGE_LINE_M
+        )
     out += _end_features(c, s, n, hw, forward=True, crosswalk=e.b in crosswalk_ends, rng=rng)
-    out += _end_features(c[::-1], paint.arc_length(c[::-1]), n, hw, forward=False,
-                         crosswalk=e.a in crosswalk_ends, rng=rng)
+    out += _end_features(
+        c[::-1],
+        paint.arc_length(c[::-1]),
+        n,
+        hw,
+        forward=False,
+        crosswalk=e.a in crosswalk_ends,
+        rng=rng,
+    )
     if s[-1] > 100.0 and rng.random() < 0.5:  # road text in the right lane, mid-block
         x, y, yaw = _pose_at(c, s, 0.5 * s[-1], -LANE_W_M * (n - 0.5))
         out += paint.text_block(TEXTS[int(rng.integers(len(TEXTS)))], x, y, yaw)
@@ -121,7 +135,7 @@ def _pose_at(c, s, at, lateral):
 
 
 def _end_features(c, s, n, hw, *, forward, crosswalk, rng) -> list[Marking]:
-    """Stop line over the incoming (right) lanes, optional zebra, turn arrows, at the far end of c."""
+    """Stop line over the incoming (right) lanes, optional zebra and turn arrows at c's far end."""
     out = []
     end = s[-1] - 1.0
     if crosswalk:
@@ -134,7 +148,11 @@ def _end_features(c, s, n, hw, *, forward, crosswalk, rng) -> list[Marking]:
     for lane in range(n):
         x, y, yaw = _pose_at(c, s, end - 14.0, -LANE_W_M * (lane + 0.5))
         if n == 2:
-            kind = "arrow_left" if lane == 0 else ("arrow_straight" if rng.random() < 0.5 else "arrow_right")
+            kind = (
+                "arrow_left"
+                if lane == 0
+                else ("arrow_straight" if rng.random() < 0.5 else "arrow_right")
+            )
         else:
             kind = ("arrow_straight", "arrow_left", "arrow_right")[int(rng.integers(3))]
         out.append(paint.arrow(kind, x, y, yaw))
@@ -179,12 +197,12 @@ def _tour(edges, n_nodes, rng) -> list[int]:
 def _lane_route(path, edges, nodes, lane: int) -> np.ndarray:
     """Lane centre polyline along a node path (right-hand lane `lane`), turns as Bezier curves."""
     legs = []
-    for a, b in zip(path[:-1], path[1:]):
+    for a, b in zip(path[:-1], path[1:], strict=False):
         e = next(e for e in edges if {e.a, e.b} == {a, b})
         c = e.center if e.a == a else e.center[::-1]
         legs.append(paint.offset(c, -LANE_W_M * (min(lane, e.lanes - 1) + 0.5)))
     pts = [legs[0]]
-    for prev, nxt in zip(legs[:-1], legs[1:]):
+    for prev, nxt in zip(legs[:-1], legs[1:], strict=False):
         p0, p2 = prev[-1], nxt[0]
         d0 = (prev[-1] - prev[-2]) / np.linalg.norm(prev[-1] - prev[-2])
         d2 = (nxt[1] - nxt[0]) / np.linalg.norm(nxt[1] - nxt[0])
@@ -212,9 +230,17 @@ def build_town(km: float = 2.0, seed: int = 0) -> World:
     for e in edges:
         markings += _road_markings(e, rng, crosswalk_ends)
     path = _tour(edges, len(nodes), rng)
-    routes = [_lane_route(path, edges, nodes, 0), _lane_route(path[::-1], edges, nodes, 0),
-              _lane_route(path, edges, nodes, 1)]
+    routes = [
+        _lane_route(path, edges, nodes, 0),
+        _lane_route(path[::-1], edges, nodes, 0),
+        _lane_route(path, edges, nodes, 1),
+    ]
     km_road = sum(float(np.linalg.norm(nodes[e.b] - nodes[e.a])) for e in edges) / 1000.0
-    return World(name=f"town-{km:g}km-s{seed}", markings=markings, routes=routes,
-                 gnss_blocked=blocked_zone_along(routes[0]), km_of_road=km_road,
-                 origin_latlon=(49.0, 8.4))
+    return World(
+        name=f"town-{km:g}km-s{seed}",
+        markings=markings,
+        routes=routes,
+        gnss_blocked=blocked_zone_along(routes[0]),
+        km_of_road=km_road,
+        origin_latlon=(49.0, 8.4),
+    )

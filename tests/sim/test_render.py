@@ -15,8 +15,17 @@ POSE = np.array([100.0, 50.0, 0.3])
 
 
 def _square(cx, cy, half, cls=Cls.GROUND_SIGN):
-    return Marking(cls, np.array([[cx - half, cy - half], [cx + half, cy - half],
-                                  [cx + half, cy + half], [cx - half, cy + half]]))
+    return Marking(
+        cls,
+        np.array(
+            [
+                [cx - half, cy - half],
+                [cx + half, cy - half],
+                [cx + half, cy + half],
+                [cx - half, cy + half],
+            ]
+        ),
+    )
 
 
 def _world_with_square(x_v, y_v, half=0.4):
@@ -53,7 +62,7 @@ def test_marking_lands_where_the_camera_projects_it(camera, x_v, y_v):
         else:  # every pixel of the shrunk square is labelled
             u0, u1 = np.ceil(cuv[:, 0].min()), np.floor(cuv[:, 0].max())
             v0, v1 = np.ceil(cuv[:, 1].min()), np.floor(cuv[:, 1].max())
-            assert (lab[int(v0):int(v1), int(u0):int(u1)] == Cls.GROUND_SIGN).mean() > 0.95
+            assert (lab[int(v0) : int(v1), int(u0) : int(u1)] == Cls.GROUND_SIGN).mean() > 0.95
 
 
 def test_labels_invert_through_the_ipm_table(camera):

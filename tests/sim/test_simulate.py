@@ -25,8 +25,9 @@ def world():
 @pytest.fixture(scope="module")
 def logs(world, tmp_path_factory):
     out = tmp_path_factory.mktemp("sim")
-    return simulate_drives(world, out, vehicles=2, drives=1, profile="mapping", seed=3,
-                           images=True, max_km=0.08)
+    return simulate_drives(
+        world, out, vehicles=2, drives=1, profile="mapping", seed=3, images=True, max_km=0.08
+    )
 
 
 def test_drive_log_round_trip(logs):
@@ -60,7 +61,7 @@ def test_labels_show_the_road_ahead(logs):
     log = DriveLog(logs[0])
     lab = log.labels(len(log) // 2)
     h = lab.shape[0]
-    assert (lab[int(0.8 * h):] > 0).mean() > 0.5  # road right in front
+    assert (lab[int(0.8 * h) :] > 0).mean() > 0.5  # road right in front
     assert (lab[: int(0.3 * h)] == 0).all()  # sky
 
 
@@ -82,8 +83,9 @@ def test_simulation_is_seeded(world, tmp_path):
 
 def test_production_profile_and_later_seeds_are_later_in_time(world, tmp_path):
     m = simulate_drives(world, tmp_path / "m", seed=0, images=False, max_km=0.05)[0]
-    p = simulate_drives(world, tmp_path / "p", seed=1000, images=False, max_km=0.05,
-                        profile="production")[0]
+    p = simulate_drives(
+        world, tmp_path / "p", seed=1000, images=False, max_km=0.05, profile="production"
+    )[0]
     lp = DriveLog(p)
     assert lp.meta.vehicle == "prod-0" and lp.meta.profile == "production"
     assert lp.streams["frame_t_ns"][0] > DriveLog(m).streams["frame_t_ns"][-1]
@@ -91,9 +93,26 @@ def test_production_profile_and_later_seeds_are_later_in_time(world, tmp_path):
 
 def test_cli_sim_prints_a_summary(tmp_path):
     out = subprocess.run(
-        [sys.executable, "-m", "services.cli", "sim", "--world", "town:1", "--out", str(tmp_path),
-         "--no-images", "--max-km", "0.05", "--vehicles", "2"],
-        cwd=REPO, capture_output=True, text=True, timeout=120)
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "sim",
+            "--world",
+            "town:1",
+            "--out",
+            str(tmp_path),
+            "--no-images",
+            "--max-km",
+            "0.05",
+            "--vehicles",
+            "2",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 0, out.stderr
     assert "2 drive logs" in out.stdout and "km" in out.stdout and "frames" in out.stdout
     assert (tmp_path / "map-1-d0" / "log.json").exists()
@@ -101,8 +120,22 @@ def test_cli_sim_prints_a_summary(tmp_path):
 
 def test_cli_world_render_writes_a_png(tmp_path):
     out = subprocess.run(
-        [sys.executable, "-m", "services.cli", "world", "render", "--world", "town:1", "--out",
-         str(tmp_path / "map.png")], cwd=REPO, capture_output=True, text=True, timeout=120)
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "world",
+            "render",
+            "--world",
+            "town:1",
+            "--out",
+            str(tmp_path / "map.png"),
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 0, out.stderr
     assert (tmp_path / "map.png").stat().st_size > 1000
 

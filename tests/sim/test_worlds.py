@@ -14,8 +14,9 @@ from services.sim.worlds import load_world, repaint
 
 def _classes_along(world, pts):
     x0, y0, _, _ = world.bounds(5.0)
-    r = world.rasterize(x0, y0, int((world.bounds()[3] - y0) / 0.1) + 60,
-                        int((world.bounds()[2] - x0) / 0.1) + 60)
+    r = world.rasterize(
+        x0, y0, int((world.bounds()[3] - y0) / 0.1) + 60, int((world.bounds()[2] - x0) / 0.1) + 60
+    )
     c = ((pts[:, 0] - x0) / 0.1).astype(int)
     rr = ((pts[:, 1] - y0) / 0.1).astype(int)
     return r[rr, c]
@@ -24,14 +25,25 @@ def _classes_along(world, pts):
 def test_town_is_seeded_and_has_every_marking_kind():
     a, b = load_world("town:1", seed=4), load_world("town:1", seed=4)
     assert len(a.markings) == len(b.markings)
-    assert all(np.array_equal(m.polygon_xy_m, n.polygon_xy_m) for m, n in zip(a.markings, b.markings))
+    assert all(
+        np.array_equal(m.polygon_xy_m, n.polygon_xy_m)
+        for m, n in zip(a.markings, b.markings, strict=False)
+    )
     kinds = {(m.cls, m.kind) for m in a.markings}
-    for need in [(Cls.LANE_LINE, "dashed"), (Cls.LANE_LINE, "solid"), (Cls.LANE_LINE, "double"),
-                 (Cls.STOP_LINE, "stop"), (Cls.CROSSWALK, "zebra"), (Cls.ROAD, "road")]:
+    for need in [
+        (Cls.LANE_LINE, "dashed"),
+        (Cls.LANE_LINE, "solid"),
+        (Cls.LANE_LINE, "double"),
+        (Cls.STOP_LINE, "stop"),
+        (Cls.CROSSWALK, "zebra"),
+        (Cls.ROAD, "road"),
+    ]:
         assert need in kinds
     assert any(m.cls == Cls.GROUND_SIGN and m.kind.startswith("arrow") for m in a.markings)
-    assert load_world("town:1", seed=5).markings[0].polygon_xy_m.tolist() != \
-        a.markings[0].polygon_xy_m.tolist()
+    assert (
+        load_world("town:1", seed=5).markings[0].polygon_xy_m.tolist()
+        != a.markings[0].polygon_xy_m.tolist()
+    )
 
 
 @pytest.mark.parametrize("km", [1.0, 2.0, 4.0])
@@ -53,7 +65,7 @@ def test_town_routes_run_on_the_road_and_cross_a_300m_gnss_outage():
 def test_repaint_moves_one_line_about_a_metre():
     world = load_world("town:1", seed=2)
     after = repaint(world, seed=1)
-    moved = [(m, n) for m, n in zip(world.markings, after.markings) if m is not n]
+    moved = [(m, n) for m, n in zip(world.markings, after.markings, strict=False) if m is not n]
     assert moved and all(m.cls == Cls.LANE_LINE for m, _ in moved)
     shifts = [np.linalg.norm(n.polygon_xy_m.mean(0) - m.polygon_xy_m.mean(0)) for m, n in moved]
     assert np.allclose(shifts, 1.0)
@@ -102,7 +114,9 @@ def test_karlsruhe_markings_are_where_the_osm_puts_them(karlsruhe):
             pts = paint.resample(np.stack([x, y], axis=1), 0.5)
             lo = pts.min(axis=0) - 2.0
             hi = pts.max(axis=0) + 2.0
-            r = world.rasterize(lo[0], lo[1], int((hi[1] - lo[1]) / 0.1), int((hi[0] - lo[0]) / 0.1))
+            r = world.rasterize(
+                lo[0], lo[1], int((hi[1] - lo[1]) / 0.1), int((hi[0] - lo[0]) / 0.1)
+            )
             cells = ((pts - lo) / 0.1).astype(int)
             hits.append(np.mean(r[cells[:, 1], cells[:, 0]] == cls))
         # stop lines are solid; line_thick ways are solid or dashed (3 m of every 9 m)
