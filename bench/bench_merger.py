@@ -197,10 +197,17 @@ def ingest_scaling(quick: bool) -> dict:
     patches = traversal_patches({t: tiles[t] for t in chosen}, traversals=2 if quick else 4,
                                 pieces=8)
     batches = [IngestBatch(patches[i:i + 4]) for i in range(0, len(patches), 4)]
-    one = ingest_rate(1, batches)
-    two = ingest_rate(2, batches)
+    rounds = 1 if quick else 3
+    ones, twos = [], []
+    for _ in range(rounds):  # alternate, best of each: the machine is shared
+        ones.append(ingest_rate(1, batches))
+        twos.append(ingest_rate(2, batches))
+    one, two = max(ones), max(twos)
     return {"ingest_1_shard_per_s": round(one, 1), "ingest_2_shards_per_s": round(two, 1),
             "ratio": round(two / one, 3), "unit": "acked patches/s", "cores": os.cpu_count(),
+            "rounds": {"one_shard": [round(v, 1) for v in ones],
+                       "two_shards": [round(v, 1) for v in twos]},
+            "load_average_1m": round(os.getloadavg()[0], 2),
             "patches": len(patches), "cell_votes": sum(len(p.cells) for p in patches),
             "goal_ratio_min": 1.7}
 
