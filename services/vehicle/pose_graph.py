@@ -30,6 +30,7 @@ class PoseGraph:
     def __init__(self, relinearize_threshold: float = RELIN_THRESHOLD):
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(relinearize_threshold)
+        params.enablePartialRelinearizationCheck = True  # check only cliques that changed
         params.relinearizeSkip = 1
         self._isam = gtsam.ISAM2(params)
         self._new_factors = gtsam.NonlinearFactorGraph()

@@ -35,8 +35,8 @@ def test_ipm_matches_analytic_projection(rng):
 @pytest.fixture(scope="module")
 def mapped(tmp_path_factory):
     root = tmp_path_factory.mktemp("drive") / "log"
-    _, world, streams = write_drive_log(root, np.random.default_rng(1), length_m=350.0,
-                                        outage_m=(100.0, 250.0), frame_stride=2)
+    _, world, streams = write_drive_log(root, np.random.default_rng(1), length_m=260.0,
+                                        outage_m=(80.0, 180.0), frame_stride=2)
     log = DriveLog(root)
     mapper = VehicleMapper(vehicle="map-0", traversal="d0", camera=log.meta.camera,
                            segmenter=GroundTruthSegmenter(seed=0), roi_x_min_m=3.0,

@@ -3,6 +3,7 @@
 import math
 
 import numpy as np
+import pytest
 
 from common.geometry import se2_between
 from services.vehicle.estimator import PoseEstimator, integrate_odometry
@@ -46,9 +47,15 @@ def test_pose_graph_recovers_from_perturbed_start(rng):
     assert yaw_err.max() < 0.003
 
 
-def test_estimator_bridges_300m_gnss_outage(rng):
-    s = drive(rng, length_m=1100.0, outage_m=(600.0, 900.0))
+@pytest.fixture(scope="module")
+def outage_run():
+    s = drive(np.random.default_rng(0), length_m=1100.0, outage_m=(600.0, 900.0))
     est, poses = _run_estimator(s)
+    return s, est, poses
+
+
+def test_estimator_bridges_300m_gnss_outage(outage_run):
+    s, est, poses = outage_run
     truth = s["frame_pose_true"]
     err = np.linalg.norm(poses[:, :2] - truth[:, :2], axis=1)
     outage = np.array([not est.covered(k) for k in range(len(err))])
@@ -60,9 +67,8 @@ def test_estimator_bridges_300m_gnss_outage(rng):
     assert abs(math.degrees(est.calibration.gyro_bias_rps) - 0.02) < 0.006
 
 
-def test_uncalibrated_odometry_drifts_through_the_outage(rng):
-    s = drive(rng, length_m=1100.0, outage_m=(600.0, 900.0))
-    est, _ = _run_estimator(s)
+def test_uncalibrated_odometry_drifts_through_the_outage(outage_run):
+    s, est, _ = outage_run
     raw = est.raw_deltas()
     outage = np.flatnonzero([not est.covered(k) for k in range(len(raw))])
     a, b = outage[0] - 1, outage[-1]

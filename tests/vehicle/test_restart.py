@@ -52,7 +52,7 @@ def _expected_ids(log_dir) -> set[str]:
 
 def test_outbox_survives_kill_and_restart_without_double_counting(tmp_path, router):
     log_dir = tmp_path / "log"
-    write_drive_log(log_dir, np.random.default_rng(2), length_m=250.0, outage_m=(100.0, 150.0),
+    write_drive_log(log_dir, np.random.default_rng(2), length_m=200.0, outage_m=(80.0, 130.0),
                     frame_stride=2)
     db, state = tmp_path / "peer.db", tmp_path / "state"
     first = _vehicle(log_dir, state, router)  # no shard alive yet: it must wait, not drop
