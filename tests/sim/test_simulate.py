@@ -26,7 +26,7 @@ def world():
 def logs(world, tmp_path_factory):
     out = tmp_path_factory.mktemp("sim")
     return simulate_drives(
-        world, out, vehicles=2, drives=1, profile="mapping", seed=3, images=True, max_km=0.08
+        world, out, vehicles=2, drives=1, profile="mapping", seed=3, images=True, max_km=0.05
     )
 
 
@@ -170,7 +170,7 @@ def test_labels_map_back_onto_the_world_through_the_logged_camera(world, tmp_pat
     from common.classes import Cls
     from common.geometry import transform_points_2d
 
-    log = DriveLog(simulate_drives(world, tmp_path, images=False, max_km=0.15, seed=2)[0])
+    log = DriveLog(simulate_drives(world, tmp_path, images=False, max_km=0.1, seed=2)[0])
     ipm = build_ipm_lookup(log.meta.camera, x_min_m=3.0, length_m=12.0, width_m=8.0)
     pts, cls = [], []
     for i in range(0, len(log), 4):
