@@ -65,8 +65,10 @@ class Supervisor:
 
     Use as a context manager: `with Supervisor(out / "logs") as sup: ...`."""
 
-    def __init__(self, log_dir: Path, env: dict[str, str] | None = None):
+    def __init__(self, log_dir: Path, env: dict[str, str] | None = None,
+                 config: Path | None = None):
         self.log_dir = Path(log_dir)
+        self.config = config  # passed to every client as --config (one effective config)
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.procs: dict[str, Proc] = {}
         self.env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
@@ -200,25 +202,26 @@ class Supervisor:
         self.router_endpoint = endpoint
         return endpoint
 
-    def _connect(self) -> list[str]:
+    def _client_args(self) -> list[str]:
         if self.router_endpoint is None:
             raise ProcessError("start the router first")
-        return ["--connect", self.router_endpoint]
+        config = ["--config", str(self.config)] if self.config else []
+        return [*config, "--connect", self.router_endpoint]
 
     def start_merger(self, shard: int, shards: int, store: Path, extra: list[str] = ()) -> Proc:
         return self.start(f"merger-s{shard}", cli_argv(
             "merger", "--shard", str(shard), "--shards", str(shards), "--store", str(store),
-            *self._connect(), *extra))
+            *self._client_args(), *extra))
 
     def start_vehicle(self, name: str, log: Path, vehicle_id: str, state: Path,
                       extra: list[str] = ()) -> Proc:
         return self.start(name, cli_argv(
             "vehicle", "--log", str(log), "--id", vehicle_id, "--state", str(state),
-            *self._connect(), *extra))
+            *self._client_args(), *extra))
 
     def start_localizer(self, name: str, log: Path, out: Path, extra: list[str] = ()) -> Proc:
         return self.start(name, cli_argv(
-            "localize", "--log", str(log), "--out", str(out), *self._connect(), *extra))
+            "localize", "--log", str(log), "--out", str(out), *self._client_args(), *extra))
 
     def history(self) -> dict[str, list[dict]]:
         return {n: p.history for n, p in self.procs.items()}

@@ -5,6 +5,7 @@ processes) -> every tile fetched over Zenoh -> evaluation against the world's gr
 a localizer process on a production drive -> OUT/report.json (DESIGN.md: Evaluation), a table
 next to the paper's numbers, and figures. up: router + shards (+ vehicles) until Ctrl-C."""
 
+import dataclasses
 import json
 import logging
 import shutil
@@ -48,6 +49,7 @@ class DemoRun:
     """One demo run in OUT: drives, fleet, fetch, evaluation, report. Steps are methods."""
 
     def __init__(self, args, cfg: RoadmapConfig):
+        cfg = with_shards(cfg, args.shards)
         self.args, self.cfg, self.d = args, cfg, cfg.demo
         self.out = Path(args.out).resolve()
         self.t0 = time.monotonic()
@@ -70,7 +72,7 @@ class DemoRun:
         self._prepare_out()
         self.world = self.step("load world", self._load_world)
         logs = self.step("simulate drives", self._simulate)
-        with Supervisor(self.out / "logs") as sup:
+        with Supervisor(self.out / "logs", config=self.out / "config.toml") as sup:
             self.step("start router and shards", self._start_cloud, sup)
             if self.args.scenario == "repaint":
                 update = self.step("map, repaint, map again", self._map_repaint, sup, logs)
@@ -463,6 +465,11 @@ def _paste_within(mosaic, fetched: dict) -> np.ndarray:
     return mosaic.paste([fetched["tiles"][i] for i in keep], [fetched["raw"][i] for i in keep])
 
 
+def with_shards(cfg: RoadmapConfig, shards: int) -> RoadmapConfig:
+    """The config every process of the fleet gets: grid.shards = the number of shards started."""
+    return dataclasses.replace(cfg, grid=dataclasses.replace(cfg.grid, shards=shards))
+
+
 def _has_files(path: Path) -> bool:
     return path.is_dir() and any(p.is_file() for p in path.rglob("*"))
 
@@ -525,8 +532,11 @@ def up_command(args, cfg: RoadmapConfig) -> int:
     from common.bus import stop_event
 
     out = Path(args.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = with_shards(cfg, args.shards)
+    (out / "config.toml").write_text(to_toml(cfg))
     stop = stop_event()
-    with Supervisor(out / "logs") as sup:
+    with Supervisor(out / "logs", config=out / "config.toml") as sup:
         endpoint = sup.start_router(getattr(args, "listen", None) or "tcp/127.0.0.1:7447")
         for i in range(args.shards):
             sup.start_merger(i, args.shards, out / "run" / f"merger-s{i}.sqlite")
