@@ -194,7 +194,7 @@ def ingest_scaling(quick: bool) -> dict:
         by_owner[owner_of_tile(t, 2)].append(t)
     n = min(len(by_owner[0]), len(by_owner[1]))
     chosen = [t for pair in zip(by_owner[0][:n], by_owner[1][:n], strict=True) for t in pair]
-    patches = traversal_patches({t: tiles[t] for t in chosen}, traversals=2 if quick else 4,
+    patches = traversal_patches({t: tiles[t] for t in chosen}, traversals=2 if quick else 8,
                                 pieces=8)
     batches = [IngestBatch(patches[i:i + 4]) for i in range(0, len(patches), 4)]
     rounds = 1 if quick else 3
