@@ -17,8 +17,8 @@ Evidence rule (DESIGN.md: Map updating), per cell:
      least MIN_VOTES votes, else the cell is unknown (0).
 Consequences: after any number (50) of traversals of old paint, a repaint wins as soon as 3 of
 the last 5 traversals saw it (3 traversals); one noisy traversal is 1 ballot against >= 2 and
-never flips a cell that 2 or more traversals agree on; a map of one or two traversals is the
-paper's plain vote sum. Everything is integer arithmetic over the set of applied patches, so the
+never flips a cell that 2 or more traversals agree on; a map of one traversal is the paper's
+plain vote argmax (and of two, ties settled by the votes behind each ballot). Everything is integer arithmetic over the set of applied patches, so the
 map (and its digest) is independent of arrival order, crashes and replays. Memory grows with the
 stored traversals of a tile (compaction of traversals outside every cell's window is future work).
 """
