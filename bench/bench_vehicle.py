@@ -143,7 +143,41 @@ def run(quick: bool = False) -> dict:
         from services.vehicle.comma2k19 import evaluate
 
         result["mapper"]["comma2k19"] = evaluate(seg)
+
+    # 4. one traversal of the simulated Karlsruhe world: map quality and poses (full run only)
+    osm = SHARED / "lanelet2-karlsruhe" / "mapping_example.osm"
+    if not quick and osm.exists():
+        result["mapper"]["karlsruhe"] = karlsruhe_traversal(osm)
     return result
+
+
+def karlsruhe_traversal(osm: Path, max_km: float | None = None) -> dict:
+    """Simulate one mapping drive (labels only) and map it with the node's configuration."""
+    import tempfile
+
+    from common.config import load_config
+    from common.drivelog import DriveLog
+    from services.sim.simulate import simulate_drives
+    from services.sim.worlds import load_world
+    from services.vehicle.node import build_mapper
+    from services.vehicle.quality import local_map_quality
+
+    world = load_world(f"lanelet2:{osm}")
+    with tempfile.TemporaryDirectory() as tmp:
+        (path,) = simulate_drives(world, tmp, profile="mapping", images=False, max_km=max_km)
+        log = DriveLog(path)
+        mapper = build_mapper(log, log.meta.vehicle, load_config(env={}), "truth")
+        timer, fps = _run_mapper(log, mapper)
+        labels, x0, y0 = mapper.local_map()
+        km = float(np.sum(np.linalg.norm(np.diff(log.streams["frame_pose_true"][:, :2], axis=0),
+                                         axis=1))) / 1000.0
+        return {"km": km, "frames": len(log), "gnss_ok_fraction": float(log.streams["gnss_ok"].mean()),
+                "quality": local_map_quality(labels, x0, y0, world),
+                **pose_errors(mapper, log.streams["frame_pose_true"]),
+                "calibration": {"odometry_scale": mapper.estimator.calibration.scale,
+                                "gyro_bias_dps": float(np.degrees(
+                                    mapper.estimator.calibration.gyro_bias_rps))},
+                "frames_per_s": fps}
 
 
 def main() -> int:

@@ -1,0 +1,7 @@
+"""On-vehicle mapping (paper section III-A) as a stream process.
+
+pose_graph (gtsam ISAM2, the only gtsam import) <- estimator (wheel + gyro odometry, RTK GNSS,
+online scale / gyro-bias calibration, settling) <- mapper (segment -> IPM -> wait for the settled
+pose -> voting grid -> sealed GridPatches) -> outbox (durable until acked) -> node (`roadmap
+vehicle`: replay a drive log, upload to the owner shards, summary.json + local_map.npz).
+quality: local map vs world truth; comma2k19: the pose graph on a real drive."""
