@@ -104,7 +104,7 @@ class LocalizerConfig:
     icp_gate_start_m: float = 1.5
     icp_gate_end_m: float = 0.4
     icp_huber_m: float = 0.1
-    icp_cov_scale: float = 4.0
+    icp_cov_scale: float = 30.0  # single-frame ICP is over-confident (correlated points, flat cost)
     gnss_inflate: float = 1.5  # consumer GNSS has a slowly varying bias: trust it less
     speed_sigma_rel: float = 0.005  # the odometry scale itself is estimated
     yaw_rate_sigma_dps: float = 0.3
@@ -120,7 +120,8 @@ class LocalizerConfig:
     recent_frames: int = 0  # also match a sample of the last n frames' points (odometry-chained)
     icp_prior: bool = False  # use the filter's prediction as a prior inside ICP
     icp_track_gate_m: float = 1.5  # first correspondence gate while tracking (init: icp_gate_start_m)
-    estimate_attitude: bool = True  # estimate camera pitch/roll per frame in ICP
+    # estimate camera pitch/roll per frame in ICP (helps on synthetic frames; hurts in the town sim)
+    estimate_attitude: bool = False
     attitude_roll: bool = True  # roll too (else pitch only)
     attitude_sigma_deg: float = 0.3  # prior of the per-frame attitude offset
 
