@@ -244,6 +244,8 @@ class FrameRenderer:
         r2 = ((xx - self.w / 2) / self.w) ** 2 + ((yy - self.h / 2) / self.h) ** 2
         self.vignette = cv2.merge([(1.0 - 0.35 * r2).astype(np.float32)] * 3)
         self._surface_cache = None
+        gamma = self.rng.uniform(0.8, 1.25)
+        self.tone = np.clip(255.0 * (np.arange(256) / 255.0) ** gamma, 0, 255).astype(np.uint8)
         self.noise = [
             self.rng.normal(0, self.look.noise_sigma, (self.h, self.w, 3)).astype(np.float32)
             for _ in range(4)
@@ -381,12 +383,20 @@ class FrameRenderer:
         return rgb
 
     def _sensor(self, rgb):
-        """Vignetting, optional blur, pixel noise, 8-bit."""
+        """Vignetting, optional defocus or motion blur, pixel noise, 8-bit with a tone curve."""
         rgb = cv2.multiply(rgb, self.vignette)
         if self.rng.random() < self.look.blur_prob:
-            rgb = cv2.GaussianBlur(rgb, (0, 0), float(self.rng.uniform(0.6, 1.6)))
+            if self.rng.random() < 0.5:
+                rgb = cv2.GaussianBlur(rgb, (0, 0), float(self.rng.uniform(0.6, 1.6)))
+            else:  # motion blur: a short line kernel, mostly vertical (pitching) or horizontal
+                n = int(self.rng.integers(3, 8))
+                k = np.zeros((n, n), np.float32)
+                k[n // 2, :] = 1.0 / n
+                if self.rng.random() < 0.5:
+                    k = k.T.copy()
+                rgb = cv2.filter2D(rgb, -1, k)
         rgb = cv2.add(rgb, self.noise[int(self.rng.integers(len(self.noise)))])
-        return np.clip(rgb, 0, 255, out=rgb).astype(np.uint8)
+        return cv2.LUT(np.clip(rgb, 0, 255, out=rgb).astype(np.uint8), self.tone)
 
 
 def _ego_dist(v: Vehicle, pose) -> float:
