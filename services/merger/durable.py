@@ -25,6 +25,7 @@ class DurableShard:
         self.ident = ident
         self.cache = cache or TileCodecCache()
         self.lock = threading.RLock()
+        self.flush_lock = threading.Lock()
         self.errors = 0
         self._changed: dict[TileId, Tile] = {}  # changed since take_changed(), for publication
 
@@ -41,8 +42,8 @@ class DurableShard:
                     n += self._replay(chunk)
                     chunk = []
             n += self._replay(chunk)
-            self.flush()
-            return n
+        self.flush()  # lock order: flush_lock before the state lock
+        return n
 
     def _replay(self, patches) -> int:
         self.shard.apply_batch(patches)
@@ -71,13 +72,26 @@ class DurableShard:
         return IngestAck(error=message)
 
     def flush(self) -> list[Tile]:
-        """Recompute dirty tiles; returns the Tiles whose compressed form changed (persisted)."""
-        with self.lock:
-            changed = [t for t in self.shard.flush() if self.cache.update(t, self.shard.labels(t))]
-            tiles = [self.tile(t) for t in changed]
-            if tiles:
-                self.store.save_tiles([(t.tile, t.version, t.codec, t.data) for t in tiles])
-            self._changed.update((t.tile, t) for t in tiles)
+        """Recompute dirty tiles; returns the Tiles whose compressed form changed (persisted).
+
+        The state lock is held per tile for the label recomputation only; compression runs
+        outside it, so ingest goes on while a flush compresses (one flush at a time)."""
+        with self.flush_lock:
+            with self.lock:
+                dirty = self.shard.dirty_tiles()
+            tiles = []
+            for t in dirty:
+                with self.lock:
+                    self.shard.flush([t])
+                    labels = self.shard.labels(t)  # a new array per flush: a stable snapshot
+                data = self.cache.encode(labels)
+                with self.lock:
+                    if self.cache.put(t, data):
+                        tiles.append(self.tile(t))
+            with self.lock:
+                if tiles:
+                    self.store.save_tiles([(t.tile, t.version, t.codec, t.data) for t in tiles])
+                self._changed.update((t.tile, t) for t in tiles)
             return tiles
 
     def take_changed(self) -> list[Tile]:
@@ -111,7 +125,7 @@ class DurableShard:
 
     def stats(self) -> Stats:
         """Counters after a flush, so the digest covers every acked patch."""
+        self.flush()  # before taking the state lock: flush takes flush_lock, then the state lock
         with self.lock:
-            self.flush()
             counters = {**self.shard.stats(), "errors": self.errors}
         return Stats(role="merger", ident=self.ident, counters=counters)

@@ -1,7 +1,8 @@
 """`roadmap merger --shard I --shards N [--store PATH]`: one tile merger shard on Zenoh.
 
 Ingest (`roadmap/ingest/s<I>`, complete): a FifoChannel drained by the main loop, which applies
-each batch durably (DurableShard) and then replies with the IngestAck. Tiles
+each batch durably (DurableShard) and then replies with the IngestAck; a flush thread recomputes
+and recompresses changed tiles meanwhile. Tiles
 (`roadmap/tile/<tx>/<ty>`, one complete queryable per held tile) and stats
 (`roadmap/stats/merger/s<I>`) are enqueued by cheap RX-thread callbacks and answered by a serve
 thread from the cached compressed tiles. Changed tiles are recompressed at most every
@@ -68,6 +69,7 @@ class MergerNode:
             self._declare_tile(tile)
         self.token = session.liveliness().declare_token(keys.alive("merger", f"s{shard}"))
         self.serving = threading.Thread(target=self._serve_loop, name="merger-serve", daemon=True)
+        self.flushing = threading.Thread(target=self._flush_loop, name="merger-flush", daemon=True)
         self._stop = threading.Event()
 
     def _enqueue_callback(self):
@@ -81,8 +83,9 @@ class MergerNode:
     # -- main loop: ingest + debounced flush ---------------------------------------------------
 
     def run(self, stop: threading.Event) -> None:
+        """Ingest on this thread; serve and flush on their own threads until `stop`."""
         self.serving.start()
-        last_flush = time.monotonic()
+        self.flushing.start()
         try:
             while not stop.is_set():
                 query = self.ingest.try_recv()
@@ -90,14 +93,24 @@ class MergerNode:
                     self._handle_ingest(query)
                 else:
                     stop.wait(IDLE_WAIT_S)
-                if time.monotonic() - last_flush >= self.debounce_s:
-                    self._flush_and_publish()
-                    last_flush = time.monotonic()
-            self._flush_and_publish()
         finally:
             self._stop.set()
+            self.flushing.join(timeout=30.0)
             self.serving.join(timeout=2.0)
+            self._flush_and_publish()
             self._undeclare()
+
+    def _flush_loop(self) -> None:
+        """Debounced recompression: at most every debounce_s, and never busier than half the
+        time (waits at least as long as the last flush took), so ingest keeps flowing."""
+        pause = self.debounce_s
+        while not self._stop.wait(pause):
+            t0 = time.monotonic()
+            try:
+                self._flush_and_publish()
+            except Exception:  # keep flushing later; the data is safe in the store
+                logger.exception("flush failed")
+            pause = max(self.debounce_s, time.monotonic() - t0)
 
     def _handle_ingest(self, query) -> None:
         with query:

@@ -287,7 +287,10 @@ class TileCodecCache:
 
     def update(self, tile: TileId, labels: np.ndarray) -> bool:
         """Re-encode a tile; True (and version + 1) when its compressed bytes changed."""
-        data = self.encode(labels)
+        return self.put(tile, self.encode(labels))
+
+    def put(self, tile: TileId, data: bytes) -> bool:
+        """Store already encoded bytes; True (and version + 1) when they differ from the last."""
         version, old = self.entries.get(tuple(tile), (0, None))
         if data == old:
             return False
