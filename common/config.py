@@ -76,7 +76,7 @@ class DemoConfig:
     repaint_drives_before: int = 2  # per vehicle, old paint
     repaint_drives_after: int = 5  # single traversals after the repaint, one at a time
     repaint_min_km: float = 0.3  # repaint drives reach the moved line (120-250 m into the route)
-    chaos_after_s: float = 2.0  # kill a shard and a vehicle this long after their first patch
+    chaos_after_s: float = 0.0  # --chaos kills this long after the shard applied its first patch
     vehicle_timeout_s: float = 600.0
     localizer_timeout_s: float = 600.0
     query_timeout_s: float = 5.0
