@@ -107,7 +107,7 @@ class DemoRun:
     def _simulate(self) -> dict:
         sim = _require("services.sim.simulate", "the simulator (services.sim.simulate)")
         drives, seed, m = self.out / "drives", self.args.seed, self.args.vehicles
-        kw = {"images": self.d.images, "max_km": self.max_km}
+        kw = {"images": self.d.images or self.d.segmenter == "onnx", "max_km": self.max_km}
         logs = {}
         if self.args.scenario == "repaint":
             worlds = _require("services.sim.worlds", "the simulator (services.sim.worlds)")
@@ -190,24 +190,31 @@ class DemoRun:
             raise DemoError(f"{name}: no vehicle summary at {path} ({exc})") from exc
 
     def _chaos(self, sup: Supervisor, vehicle: str, logs: list[Path]) -> None:
-        """SIGKILL the busiest shard and one vehicle in the middle of mapping, restart both."""
+        """SIGKILL the busiest shard and one vehicle once the shard has applied patches (so it
+        must replay its store), while the vehicle is still mapping; then restart both."""
         shard = self._busiest_shard(logs)
-        state = self.out / "run" / vehicle
-        deadline = time.monotonic() + 120.0
-        while (not _has_files(state) and sup.procs[vehicle].running()
-               and time.monotonic() < deadline):
-            time.sleep(0.1)
+        applied, deadline = 0, time.monotonic() + 120.0
+        while sup.procs[vehicle].running() and time.monotonic() < deadline:
+            stats = run_fetch(sup.router_endpoint, "stats", self.args.shards)
+            applied = int((stats.get(f"s{shard}") or {}).get("patches_applied", 0))
+            if applied > 0:
+                break
+            time.sleep(0.2)
         time.sleep(self.d.chaos_after_s)
-        if not sup.procs[vehicle].running():
+        running = sup.procs[vehicle].running()
+        if not running:
             logger.warning("chaos: %s finished before it could be killed", vehicle)
         for name in (f"merger-s{shard}", vehicle):
             sup.kill(name)
-            self.chaos_events.append({"t_s": sup.elapsed(), "event": "SIGKILL", "process": name})
+            self.chaos_events.append({"t_s": sup.elapsed(), "event": "SIGKILL", "process": name,
+                                      "shard_applied_before": applied,
+                                      "vehicle_was_running": running})
         time.sleep(1.0)
         for name in (f"merger-s{shard}", vehicle):
             sup.restart(name)
             self.chaos_events.append({"t_s": sup.elapsed(), "event": "restart", "process": name})
-        logger.info("chaos: killed and restarted merger-s%d and %s", shard, vehicle)
+        logger.info("chaos: killed and restarted merger-s%d (%d patches applied) and %s", shard,
+                    applied, vehicle)
 
     def _busiest_shard(self, logs: list[Path]) -> int:
         owners = Counter()

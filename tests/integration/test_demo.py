@@ -100,6 +100,8 @@ def test_chaos_loses_nothing_and_keeps_the_map(runs):
     killed = {e["process"] for e in events if e["event"] == "SIGKILL"}
     assert any(k.startswith("merger-s") for k in killed)
     assert any(k.startswith("vehicle") for k in killed)
+    kills = [e for e in events if e["event"] == "SIGKILL"]
+    assert kills[0]["shard_applied_before"] > 0  # the shard had to replay its store
     p = chaos["pipeline"]
     assert p["patches_acked"] == p["patches_applied"] == plain["pipeline"]["patches_applied"]
     assert chaos["map"]["digest"] == plain["map"]["digest"]  # same seed, same map
