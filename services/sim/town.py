@@ -26,10 +26,11 @@ class Edge:
     b: int
     lanes: int  # per direction
     center: np.ndarray  # (N, 2) road centre line from node a to node b, cut at the boxes
+    lane_w: float = LANE_W_M
 
     @property
     def half_width(self) -> float:
-        return self.lanes * LANE_W_M + SHOULDER_M
+        return self.lanes * self.lane_w + SHOULDER_M
 
 
 def _grid_shape(km: float) -> tuple[int, int]:
@@ -67,7 +68,8 @@ def _edges(nodes, nx, ny, rng) -> list[Edge]:
     edges = []
     for a, b, arterial in pairs:
         amp = rng.uniform(-18.0, 18.0) if rng.random() < 0.4 else 0.0
-        edges.append(Edge(a, b, 2 if arterial else 1, _bent(nodes[a], nodes[b], amp)))
+        lane_w = rng.uniform(3.0, 3.75)  # lane widths vary from road to road
+        edges.append(Edge(a, b, 2 if arterial else 1, _bent(nodes[a], nodes[b], amp), lane_w))
     return edges
 
 
@@ -86,7 +88,7 @@ def _cut_edges(edges, nodes):
 
 def _road_markings(e: Edge, rng, crosswalk_ends: set) -> list[Marking]:
     """Surface, lane lines, and at both ends stop lines, crossings and arrows of one road."""
-    c, n, hw = e.center, e.lanes, e.half_width
+    c, n, hw, lw = e.center, e.lanes, e.half_width, e.lane_w
     s = paint.arc_length(c)
     out = [Marking(Cls.ROAD, paint.strip(c, 2 * hw), "road")]
     zone = {end: (7.0 if end in crosswalk_ends else 1.5) for end in (e.a, e.b)}
@@ -102,25 +104,22 @@ def _road_markings(e: Edge, rng, crosswalk_ends: set) -> list[Marking]:
     else:
         out += paint.line_markings(body, "double")
         for side in (-1, 1):
-            out += paint.line_markings(
-                paint.offset(body, side * LANE_W_M), "dashed", 0.15, 6.0, 12.0
-            )
+            out += paint.line_markings(paint.offset(body, side * lw), "dashed", 0.15, 6.0, 12.0)
     for side in (-1, 1):
-        out += paint.line_markings(
-            paint.offset(body, side * (n * LANE_W_M + 0.1)), "solid", EDGE_LINE_M
-        )
-    out += _end_features(c, s, n, hw, forward=True, crosswalk=e.b in crosswalk_ends, rng=rng)
+        out += paint.line_markings(paint.offset(body, side * (n * lw + 0.1)), "solid", EDGE_LINE_M)
+    out += _end_features(c, s, n, hw, lw=lw, forward=True, crosswalk=e.b in crosswalk_ends, rng=rng)
     out += _end_features(
         c[::-1],
         paint.arc_length(c[::-1]),
         n,
         hw,
+        lw=lw,
         forward=False,
         crosswalk=e.a in crosswalk_ends,
         rng=rng,
     )
     if s[-1] > 100.0 and rng.random() < 0.5:  # road text in the right lane, mid-block
-        x, y, yaw = _pose_at(c, s, 0.5 * s[-1], -LANE_W_M * (n - 0.5))
+        x, y, yaw = _pose_at(c, s, 0.5 * s[-1], -lw * (n - 0.5))
         out += paint.text_block(TEXTS[int(rng.integers(len(TEXTS)))], x, y, yaw)
     return out
 
@@ -134,7 +133,7 @@ def _pose_at(c, s, at, lateral):
     return x - math.sin(yaw) * lateral, y + math.cos(yaw) * lateral, yaw
 
 
-def _end_features(c, s, n, hw, *, forward, crosswalk, rng) -> list[Marking]:
+def _end_features(c, s, n, hw, *, lw, forward, crosswalk, rng) -> list[Marking]:
     """Stop line over the incoming (right) lanes, optional zebra and turn arrows at c's far end."""
     out = []
     end = s[-1] - 1.0
@@ -143,10 +142,10 @@ def _end_features(c, s, n, hw, *, forward, crosswalk, rng) -> list[Marking]:
         b = _pose_at(c, s, end - 2.0, -hw + 0.5)
         out += paint.zebra_across(np.array(a[:2]), np.array(b[:2]), depth_m=4.0)
         end -= 5.5
-    p0, p1 = _pose_at(c, s, end, -0.1), _pose_at(c, s, end, -n * LANE_W_M)
+    p0, p1 = _pose_at(c, s, end, -0.1), _pose_at(c, s, end, -n * lw)
     out.append(paint.stop_line(np.array(p0[:2]), np.array(p1[:2])))
     for lane in range(n):
-        x, y, yaw = _pose_at(c, s, end - 14.0, -LANE_W_M * (lane + 0.5))
+        x, y, yaw = _pose_at(c, s, end - 14.0, -lw * (lane + 0.5))
         if n == 2:
             kind = (
                 "arrow_left"
@@ -200,7 +199,7 @@ def _lane_route(path, edges, nodes, lane: int) -> np.ndarray:
     for a, b in zip(path[:-1], path[1:], strict=False):
         e = next(e for e in edges if {e.a, e.b} == {a, b})
         c = e.center if e.a == a else e.center[::-1]
-        legs.append(paint.offset(c, -LANE_W_M * (min(lane, e.lanes - 1) + 0.5)))
+        legs.append(paint.offset(c, -e.lane_w * (min(lane, e.lanes - 1) + 0.5)))
     pts = [legs[0]]
     for prev, nxt in zip(legs[:-1], legs[1:], strict=False):
         p0, p2 = prev[-1], nxt[0]
