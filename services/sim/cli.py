@@ -94,12 +94,15 @@ def summarize(paths) -> dict:
 
 def world_command(args, cfg) -> int:
     world = load_world(args.world, seed=args.seed)
-    labels, x0, y0 = world.rasterize_all()
+    x0, y0, x1, y1 = world.bounds()
+    # 0.1 m cells; big worlds at 0.2 m (the PNG is shrunk to 4000 px anyway, paint max-pooled)
+    cell_m = 0.1 if max(x1 - x0, y1 - y0) <= 1500.0 else 0.2
+    labels, x0, y0 = world.rasterize_all(cell_m=cell_m)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     render_png(labels, args.out)
     sys.stdout.write(
-        f"world {world.name}: {world.km_of_road:.2f} km of road, "
-        f"{len(world.markings)} polygons, {labels.shape[1] * 0.1:.0f} x "
-        f"{labels.shape[0] * 0.1:.0f} m from ({x0:.1f}, {y0:.1f}) -> {args.out}\n"
+        f"world {world.name}: {world.km_of_road:.2f} km of road, {len(world.markings)} polygons, "
+        f"{labels.shape[1] * cell_m:.0f} x {labels.shape[0] * cell_m:.0f} m at {cell_m} m "
+        f"from ({x0:.1f}, {y0:.1f}) -> {args.out}\n"
     )
     return 0
