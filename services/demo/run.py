@@ -18,7 +18,7 @@ import numpy as np
 
 from common.config import RoadmapConfig, to_toml
 from common.drivelog import DriveLog
-from common.errors import RoadmapError
+from common.errors import ConfigError, RoadmapError
 from common.grid import owner_of_tile, tile_of_point
 from services.demo import evaluate as ev
 from services.demo import figures
@@ -50,6 +50,8 @@ class DemoRun:
 
     def __init__(self, args, cfg: RoadmapConfig):
         cfg = with_shards(cfg, args.shards)
+        if cfg.demo.segmenter not in ("truth", "onnx"):
+            raise ConfigError(f"demo.segmenter must be truth or onnx, got {cfg.demo.segmenter!r}")
         self.args, self.cfg, self.d = args, cfg, cfg.demo
         self.out = Path(args.out).resolve()
         self.t0 = time.monotonic()
