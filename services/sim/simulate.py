@@ -53,14 +53,15 @@ def simulate_drives(
     max_km: float | None = None,
     route=None,
     camera: CameraModel | None = None,
+    noise: sensors.NoiseProfile | None = None,
     progress=None,
 ) -> list[Path]:
     """Write one drive log per (vehicle, drive) into out_dir/<vehicle>-d<drive>/.
 
     Vehicles of a world share its first route (other lanes of the same roads where the world has
     them), so their maps overlap; `route` (index or (N, 2) polyline) overrides it. Each drive
-    differs in lane offset, speeds, sensor noise and looks. `progress(done, total)` is called
-    per frame."""
+    differs in lane offset, speeds, sensor noise and looks. `noise` replaces the profile's
+    noise model (e.g. a harder one in a test); `progress(done, total)` is called per frame."""
     if profile not in sensors.PROFILES:
         raise WorldError(f"unknown profile {profile!r} (mapping | production)")
     camera = camera or camera_from_config(CameraConfig())
@@ -77,6 +78,7 @@ def simulate_drives(
             max_km=max_km,
             route=route,
             camera=camera,
+            noise=noise or sensors.PROFILES[profile],
             progress=progress,
         )
         for d in range(drives)
@@ -85,7 +87,20 @@ def simulate_drives(
 
 
 def _drive_one(
-    world, out_dir, *, v, d, vehicles, profile, seed, images, max_km, route, camera, progress
+    world,
+    out_dir,
+    *,
+    v,
+    d,
+    vehicles,
+    profile,
+    seed,
+    images,
+    max_km,
+    route,
+    camera,
+    progress,
+    noise=None,
 ) -> Path:
     """Drive d of vehicle v: its own seed, time slot and log directory."""
     vehicle = f"{PREFIX[profile]}-{v}"
@@ -96,7 +111,7 @@ def _drive_one(
         Path(out_dir) / f"{vehicle}-d{d}",
         vehicle=vehicle,
         traversal=f"{vehicle}-d{d}-s{seed}",
-        profile=sensors.PROFILES[profile],
+        profile=noise or sensors.PROFILES[profile],
         route=_route_for(world, v, route),
         camera=camera,
         rng=np.random.default_rng(drive_seed),
