@@ -125,7 +125,8 @@ def _spawn(args: list[str], log) -> subprocess.Popen:
 
 
 def ingest_rate(n_shards: int, batches: list[IngestBatch], window: int = 8) -> float:
-    """Acked patches per second for `batches` sent to their owner shards (n_shards processes)."""
+    """Patches per second for `batches` sent to their owner shards (n_shards processes), from
+    the first send until every batch is acked AND every shard has merged and compressed it."""
     from common.bus import free_tcp_port, open_session, wait_for_tcp
     from common.config import BusConfig
 
@@ -147,6 +148,11 @@ def ingest_rate(n_shards: int, batches: list[IngestBatch], window: int = 8) -> f
                 n = sum(len(b.patches) for b in batches)
                 t0 = time.perf_counter()
                 _pipelined(session, work, window)
+                # every shard's stats reply comes after its flush: labels merged, tiles compressed
+                handles = [session.get(keys.stats("merger", f"s{k}"), timeout=120.0)
+                           for k in range(n_shards)]
+                if not all(any(r.ok is not None for r in h) for h in handles):
+                    raise RuntimeError("a shard did not answer its stats")
                 return n / (time.perf_counter() - t0)
         finally:
             for p in reversed(procs):
@@ -204,7 +210,8 @@ def ingest_scaling(quick: bool) -> dict:
         twos.append(ingest_rate(2, batches))
     one, two = max(ones), max(twos)
     return {"ingest_1_shard_per_s": round(one, 1), "ingest_2_shards_per_s": round(two, 1),
-            "ratio": round(two / one, 3), "unit": "acked patches/s", "cores": os.cpu_count(),
+            "ratio": round(two / one, 3),
+            "unit": "patches/s, acked + merged + compressed (stats reply after the last flush)", "cores": os.cpu_count(),
             "rounds": {"one_shard": [round(v, 1) for v in ones],
                        "two_shards": [round(v, 1) for v in twos]},
             "load_average_1m": round(os.getloadavg()[0], 2),
