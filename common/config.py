@@ -71,7 +71,7 @@ class DemoConfig:
     segmenter: str = "truth"  # "truth" (corrupted true labels) or "onnx" (needs rendered images)
     images: bool = False  # render camera frames for the mapping drives (slow on 2 cores)
     max_km: float = 0.4  # length of each simulated drive
-    small_max_km: float = 0.12  # --small
+    small_max_km: float = 0.2  # --small (the localizer needs ~100 m to converge)
     drives: int = 1  # mapping drives per vehicle
     repaint_drives_before: int = 2  # per vehicle, old paint
     repaint_drives_after: int = 5  # single traversals after the repaint, one at a time
