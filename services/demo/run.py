@@ -170,7 +170,7 @@ class DemoRun:
 
     def _wait_vehicles(self, sup: Supervisor, names: list[str]) -> None:
         deadline = time.monotonic() + self.d.vehicle_timeout_s
-        pending = list(names)
+        pending, next_report = list(names), time.monotonic() + 10.0
         while pending:
             sup.check_alive(self._shard_names())
             for n in list(pending):
@@ -182,6 +182,11 @@ class DemoRun:
             if time.monotonic() > deadline:
                 raise ProcessError(f"vehicles {pending} not done after "
                                    f"{self.d.vehicle_timeout_s} s")
+            if pending and time.monotonic() > next_report:
+                applied = _applied(run_fetch(sup.router_endpoint, "stats", self.args.shards))
+                logger.info("mapping: %d of %d vehicles still running, shards applied %d patches",
+                            len(pending), len(names), applied)
+                next_report = time.monotonic() + 10.0
             time.sleep(0.2)
 
     def _read_summary(self, name: str) -> dict:
