@@ -62,6 +62,7 @@ class DemoRun:
         if args.scenario == "repaint":
             self.max_km = max(self.max_km, self.d.repaint_min_km)
         self.world = self.world_after = None
+        self.router_endpoint: str | None = None
 
     def step(self, name: str, fn, *a, **kw):
         logger.info("[%5.1f s] %s ...", time.monotonic() - self.t0, name)
@@ -134,7 +135,7 @@ class DemoRun:
 
     def _start_cloud(self, sup: Supervisor) -> None:
         _require("services.merger.node", "the merger service (services.merger.node)")
-        sup.start_router()
+        self.router_endpoint = sup.start_router()
         for i in range(self.args.shards):
             sup.start_merger(i, self.args.shards, self.out / "run" / f"merger-s{i}.sqlite")
         self._wait_shards_ready(sup, timeout_s=60.0)
@@ -429,7 +430,8 @@ class DemoRun:
         return {"seed": a.seed, "vehicles": a.vehicles, "shards": a.shards, "scenario": a.scenario,
                 "chaos": a.chaos, "small": a.small, "max_km_per_drive": self.max_km,
                 "segmenter": self.d.segmenter, "images": self.d.images,
-                "chaos_events": self.chaos_events, "tile_versions": t["versions"]}
+                "chaos_events": self.chaos_events, "tile_versions": t["versions"],
+                "router": self.router_endpoint}
 
     def _vehicle_stage_ms(self) -> dict:
         acc: dict[str, list[float]] = {}

@@ -4,6 +4,7 @@ a shard and a vehicle in the middle of mapping). Bounds are stated next to each 
 
 import json
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -92,6 +93,10 @@ def test_figures_written(runs):
 def test_everything_stopped(runs):
     for out, report in runs.values():
         _no_leftover_processes(report, out)
+        host, port = report["run"]["router"].split("/", 1)[1].rsplit(":", 1)
+        with socket.socket() as s, pytest.raises(OSError):  # the router's port is closed
+            s.settimeout(1.0)
+            s.connect((host, int(port)))
 
 
 def test_chaos_loses_nothing_and_keeps_the_map(runs):
