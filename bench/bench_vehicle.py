@@ -27,8 +27,7 @@ from common.classes import colorize  # noqa: E402
 from common.segmentation import DEFAULT_MODEL, GroundTruthSegmenter, get_segmenter  # noqa: E402
 from services.vehicle.mapper import VehicleMapper  # noqa: E402
 from services.vehicle.node import StageTimer, map_log, pose_errors  # noqa: E402
-from tests.vehicle.synthetic import (  # noqa: E402
-    LabelRenderer, centreline, drive, mapping_camera, road_world)
+from tests.vehicle.synthetic import LabelRenderer, centreline, drive, mapping_camera, road_world  # noqa: E402
 
 logger = logging.getLogger("bench.vehicle")
 SHARED = Path(os.environ.get("ROADMAP_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -58,16 +57,26 @@ def _make_log(length_m: float, outage_m, rng) -> tuple[MemoryLog, object]:
 
 
 def _mapper(camera, segmenter):
-    return VehicleMapper(vehicle="bench", traversal="b0", camera=camera, segmenter=segmenter,
-                         roi_x_min_m=3.0, roi_length_m=8.0, roi_width_m=8.0)
+    return VehicleMapper(
+        vehicle="bench",
+        traversal="b0",
+        camera=camera,
+        segmenter=segmenter,
+        roi_x_min_m=3.0,
+        roi_length_m=8.0,
+        roi_width_m=8.0,
+    )
 
 
 def _stage_stats(timer: StageTimer) -> dict:
     out = {}
     for stage, ms in timer.ms.items():
         ms = np.asarray(ms)
-        out[stage] = {"p50_ms": float(np.percentile(ms, 50)), "p95_ms": float(np.percentile(ms, 95)),
-                      "per_s": float(1e3 / max(ms.mean(), 1e-9))}
+        out[stage] = {
+            "p50_ms": float(np.percentile(ms, 50)),
+            "p95_ms": float(np.percentile(ms, 95)),
+            "per_s": float(1e3 / max(ms.mean(), 1e-9)),
+        }
     return out
 
 
@@ -114,11 +123,14 @@ def run(quick: bool = False) -> dict:
     stages = {k: v for k, v in stages.items() if k in ("ipm", "pose_graph", "voting")}
     result = {
         "stages": stages,
-        "mapper": {"frames_per_s_1_core_no_model": fps, "frames": len(log),
-                   "stream": f"{camera.width}x{camera.height}",
-                   "per_stage_ms_no_model": _stage_stats(timer),
-                   **{k: v for k, v in pose_errors(mapper, log.streams["frame_pose_true"]).items()},
-                   "outage_m": list(outage)},
+        "mapper": {
+            "frames_per_s_1_core_no_model": fps,
+            "frames": len(log),
+            "stream": f"{camera.width}x{camera.height}",
+            "per_stage_ms_no_model": _stage_stats(timer),
+            **{k: v for k, v in pose_errors(mapper, log.streams["frame_pose_true"]).items()},
+            "outage_m": list(outage),
+        },
     }
 
     # 2. with the ONNX model on two cores
@@ -127,7 +139,10 @@ def run(quick: bool = False) -> dict:
         n = 20 if quick else 80
         images = [colorize(lab) for lab in log._labels[:n]]
         sub = {k: v for k, v in log.streams.items()}
-        sub["frame_t_ns"], sub["frame_pose_true"] = sub["frame_t_ns"][:n], sub["frame_pose_true"][:n]
+        sub["frame_t_ns"], sub["frame_pose_true"] = (
+            sub["frame_t_ns"][:n],
+            sub["frame_pose_true"][:n],
+        )
         mlog = MemoryLog(sub, log._labels[:n], images)
         timer_m, fps_m = _run_mapper(mlog, _mapper(camera, segmenter))
         result["mapper"]["frames_per_s_with_model"] = fps_m
@@ -169,15 +184,26 @@ def karlsruhe_traversal(osm: Path, max_km: float | None = None) -> dict:
         mapper = build_mapper(log, log.meta.vehicle, load_config(env={}), "truth")
         timer, fps = _run_mapper(log, mapper)
         labels, x0, y0 = mapper.local_map()
-        km = float(np.sum(np.linalg.norm(np.diff(log.streams["frame_pose_true"][:, :2], axis=0),
-                                         axis=1))) / 1000.0
-        return {"km": km, "frames": len(log), "gnss_ok_fraction": float(log.streams["gnss_ok"].mean()),
-                "quality": local_map_quality(labels, x0, y0, world),
-                **pose_errors(mapper, log.streams["frame_pose_true"]),
-                "calibration": {"odometry_scale": mapper.estimator.calibration.scale,
-                                "gyro_bias_dps": float(np.degrees(
-                                    mapper.estimator.calibration.gyro_bias_rps))},
-                "frames_per_s": fps}
+        km = (
+            float(
+                np.sum(
+                    np.linalg.norm(np.diff(log.streams["frame_pose_true"][:, :2], axis=0), axis=1)
+                )
+            )
+            / 1000.0
+        )
+        return {
+            "km": km,
+            "frames": len(log),
+            "gnss_ok_fraction": float(log.streams["gnss_ok"].mean()),
+            "quality": local_map_quality(labels, x0, y0, world),
+            **pose_errors(mapper, log.streams["frame_pose_true"]),
+            "calibration": {
+                "odometry_scale": mapper.estimator.calibration.scale,
+                "gyro_bias_dps": float(np.degrees(mapper.estimator.calibration.gyro_bias_rps)),
+            },
+            "frames_per_s": fps,
+        }
 
 
 def main() -> int:

@@ -20,8 +20,14 @@ CONSUMER_GNSS_SIGMA_M = 2.0  # u-blox without RTK (README: about 1.5 m off the r
 def geodetic_to_ecef(lat_deg, lon_deg, alt_m) -> np.ndarray:
     lat, lon = np.radians(lat_deg), np.radians(lon_deg)
     n = WGS84_A / np.sqrt(1 - WGS84_E2 * np.sin(lat) ** 2)
-    return np.stack([(n + alt_m) * np.cos(lat) * np.cos(lon), (n + alt_m) * np.cos(lat) * np.sin(lon),
-                     (n * (1 - WGS84_E2) + alt_m) * np.sin(lat)], axis=-1)
+    return np.stack(
+        [
+            (n + alt_m) * np.cos(lat) * np.cos(lon),
+            (n + alt_m) * np.cos(lat) * np.sin(lon),
+            (n * (1 - WGS84_E2) + alt_m) * np.sin(lat),
+        ],
+        axis=-1,
+    )
 
 
 def ecef_to_geodetic_latlon(xyz) -> tuple[float, float]:
@@ -39,20 +45,24 @@ def ecef_to_geodetic_latlon(xyz) -> tuple[float, float]:
 def enu_rotation(lat_deg: float, lon_deg: float) -> np.ndarray:
     """R_enu_ecef at a geodetic point."""
     lat, lon = math.radians(lat_deg), math.radians(lon_deg)
-    return np.array([
-        [-math.sin(lon), math.cos(lon), 0.0],
-        [-math.sin(lat) * math.cos(lon), -math.sin(lat) * math.sin(lon), math.cos(lat)],
-        [math.cos(lat) * math.cos(lon), math.cos(lat) * math.sin(lon), math.sin(lat)],
-    ])
+    return np.array(
+        [
+            [-math.sin(lon), math.cos(lon), 0.0],
+            [-math.sin(lat) * math.cos(lon), -math.sin(lat) * math.sin(lon), math.cos(lat)],
+            [math.cos(lat) * math.cos(lon), math.cos(lat) * math.sin(lon), math.sin(lat)],
+        ]
+    )
 
 
 def _quat_wxyz_to_rot(q) -> np.ndarray:
     w, x, y, z = q / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def load_segment(root: str | Path) -> dict:
@@ -63,7 +73,9 @@ def load_segment(root: str | Path) -> dict:
     lat0, lon0 = ecef_to_geodetic_latlon(ref_ecef[0])
     R = enu_rotation(lat0, lon0)
     ref_xy = ((ref_ecef - ref_ecef[0]) @ R.T)[:, :2]
-    forward_ecef = np.array([_quat_wxyz_to_rot(q)[:, 0] for q in ld("global_pose/frame_orientations")])
+    forward_ecef = np.array(
+        [_quat_wxyz_to_rot(q)[:, 0] for q in ld("global_pose/frame_orientations")]
+    )
     forward_enu = forward_ecef @ R.T
     ref_yaw = np.unwrap(np.arctan2(forward_enu[:, 1], forward_enu[:, 0]))
     g = ld("processed_log/GNSS/live_gnss_ublox/value")
@@ -90,12 +102,18 @@ def run_estimator(streams: dict, estimator: PoseEstimator) -> np.ndarray:
     s, poses = streams, {}
     o = i = g = 0
     for t in s["frame_t_ns"]:
-        o2, i2, g2 = (int(np.searchsorted(s[k], t, "right")) for k in ("odom_t_ns", "imu_t_ns", "gnss_t_ns"))
+        o2, i2, g2 = (
+            int(np.searchsorted(s[k], t, "right")) for k in ("odom_t_ns", "imu_t_ns", "gnss_t_ns")
+        )
         estimator.add_odometry(s["odom_t_ns"][o:o2], s["odom_speed_mps"][o:o2])
         estimator.add_imu(s["imu_t_ns"][i:i2], s["imu_yaw_rate_rps"][i:i2])
         for k in range(g, g2):
-            estimator.add_gnss(int(s["gnss_t_ns"][k]), s["gnss_xy_m"][k], float(s["gnss_sigma_m"][k]),
-                               bool(s["gnss_ok"][k]))
+            estimator.add_gnss(
+                int(s["gnss_t_ns"][k]),
+                s["gnss_xy_m"][k],
+                float(s["gnss_sigma_m"][k]),
+                bool(s["gnss_ok"][k]),
+            )
         o, i, g = o2, i2, g2
         estimator.add_frame(int(t))
         poses.update(estimator.settled())
@@ -104,7 +122,11 @@ def run_estimator(streams: dict, estimator: PoseEstimator) -> np.ndarray:
 
 
 def _stats(err) -> dict:
-    return {"mean": float(np.mean(err)), "p90": float(np.percentile(err, 90)), "max": float(np.max(err))}
+    return {
+        "mean": float(np.mean(err)),
+        "p90": float(np.percentile(err, 90)),
+        "max": float(np.max(err)),
+    }
 
 
 def evaluate(root: str | Path) -> dict:
@@ -116,22 +138,24 @@ def evaluate(root: str | Path) -> dict:
     final = est.graph.estimates()
     smoothed = np.array([final[k] for k in range(len(truth))])
     t = s["frame_t_ns"].astype(float)
-    gnss_at_frames = np.column_stack([np.interp(t, s["gnss_t_ns"].astype(float), s["gnss_xy_m"][:, k])
-                                      for k in range(2)])
+    gnss_at_frames = np.column_stack(
+        [np.interp(t, s["gnss_t_ns"].astype(float), s["gnss_xy_m"][:, k]) for k in range(2)]
+    )
     odo = dead_reckon(truth[0], est.raw_deltas()[1:])
     err = lambda xy: np.linalg.norm(xy - truth[:, :2], axis=1)  # noqa: E731
     yaw_err = np.degrees(np.abs(np.angle(np.exp(1j * (poses[:, 2] - truth[:, 2])))))
     length = float(np.sum(np.linalg.norm(np.diff(truth[:, :2], axis=0), axis=1)))
     return {
-        "frames": int(len(truth)), "length_m": length,
+        "frames": int(len(truth)),
+        "length_m": length,
         "pose_graph_committed_m": _stats(err(poses[:, :2])),
         "pose_graph_smoothed_m": _stats(err(smoothed[:, :2])),
         "gnss_only_m": _stats(err(gnss_at_frames)),
         "odometry_only_m": _stats(err(odo[:, :2])),
         "pose_graph_yaw_deg": _stats(yaw_err),
         "notes": "reference = comma2k19 global_pose (fused INS/GNSS/vision); committed = poses as "
-                 "the mapper commits them (1 s settle lag), smoothed = the whole graph at the end; "
-                 "gnss-only = fixes interpolated to frame times; odometry-only = CAN speed + gyro "
-                 "dead reckoning from the true first pose; GNSS is u-blox without RTK, with a bias "
-                 "and about 0.1 s timestamp latency that no factor models",
+        "the mapper commits them (1 s settle lag), smoothed = the whole graph at the end; "
+        "gnss-only = fixes interpolated to frame times; odometry-only = CAN speed + gyro "
+        "dead reckoning from the true first pose; GNSS is u-blox without RTK, with a bias "
+        "and about 0.1 s timestamp latency that no factor models",
     }

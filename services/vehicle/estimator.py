@@ -22,8 +22,9 @@ COVERED_S = 0.6  # a node is GNSS-covered when a good fix lies within this time
 MIN_SCALE_CHORD_M = 20.0  # calibration windows shorter than this give no scale evidence
 
 
-def integrate_odometry(t0_ns, t1_ns, odom_t_ns, speed_mps, imu_t_ns, yaw_rate_rps, *,
-                       scale=1.0, gyro_bias_rps=0.0):
+def integrate_odometry(
+    t0_ns, t1_ns, odom_t_ns, speed_mps, imu_t_ns, yaw_rate_rps, *, scale=1.0, gyro_bias_rps=0.0
+):
     """Dead-reckon from t0 to t1: (delta (dx, dy, dyaw) in the start frame, distance_m).
 
     Speed and yaw rate are linearly interpolated onto the union of sample times and integrated
@@ -192,7 +193,9 @@ class PoseEstimator:
         out = []
         while self._next_settle <= last:
             t = self._nodes[self._next_settle].t_ns
-            fixed = self._last_fix_ns is not None and self._last_fix_ns >= t + self.settle_lag_s / NS
+            fixed = (
+                self._last_fix_ns is not None and self._last_fix_ns >= t + self.settle_lag_s / NS
+            )
             if not (flush or fixed or (t_last - t) * NS > self.max_wait_s):
                 break
             out.append(self._next_settle)
@@ -200,7 +203,7 @@ class PoseEstimator:
         poses = [self.graph.estimate(i) for i in out]
         if self.calibrate and out:
             self._calibrate_upto(out[-1])
-        return list(zip(out, poses))
+        return list(zip(out, poses, strict=True))
 
     def node_time_ns(self, i: int) -> int:
         return self._nodes[i].t_ns
@@ -277,8 +280,10 @@ class PoseEstimator:
         src = np.array([local[f[0], :2] for f in self._fixes])
         yaw, t = fit_rigid_2d(src, gxy)
         start = np.array([t[0], t[1], yaw])
-        self._insert_initial(dead_reckon(start, [n.delta for n in self._nodes[1:]]),
-                             position_sigma_m=max(f[3] for f in self._fixes) * 3.0)
+        self._insert_initial(
+            dead_reckon(start, [n.delta for n in self._nodes[1:]]),
+            position_sigma_m=max(f[3] for f in self._fixes) * 3.0,
+        )
 
     def _initialize_without_gnss(self) -> None:
         logger.warning("no GNSS baseline in the whole log: poses are odometry from the origin")
@@ -304,23 +309,36 @@ class PoseEstimator:
             self._calib_start = j if self._nodes[j].precise else None
             return
         i = self._calib_start
-        if not all(n.precise for n in self._nodes[i: j + 1]):
+        if not all(n.precise for n in self._nodes[i : j + 1]):
             self._calib_start = j
             return
         span_s = (self._nodes[j].t_ns - self._nodes[i].t_ns) * NS
         if span_s < self.calib_window_s:
             return
-        raw = [n.raw_delta for n in self._nodes[i + 1: j + 1]]
+        raw = [n.raw_delta for n in self._nodes[i + 1 : j + 1]]
         bias = self.calibration.gyro_bias_rps
-        debiased = [np.array([d[0], d[1], d[2] - bias * (self._nodes[i + 1 + k].t_ns
-                                                         - self._nodes[i + k].t_ns) * NS])
-                    for k, d in enumerate(raw)]
+        debiased = [
+            np.array(
+                [
+                    d[0],
+                    d[1],
+                    d[2] - bias * (self._nodes[i + 1 + k].t_ns - self._nodes[i + k].t_ns) * NS,
+                ]
+            )
+            for k, d in enumerate(raw)
+        ]
         chord_raw = float(np.linalg.norm(dead_reckon(np.zeros(3), debiased)[-1, :2]))
         pi, pj = self.graph.estimate(i), self.graph.estimate(j)
         self.calibration.add_window(
-            chord_opt_m=float(np.linalg.norm(pj[:2] - pi[:2])), chord_raw_m=chord_raw,
-            gyro_dyaw_rad=float(sum(d[2] for d in raw)), opt_dyaw_rad=float(pj[2] - pi[2]),
-            dt_s=span_s)
-        logger.debug("calibration: scale %.5f gyro bias %.5f deg/s", self.calibration.scale,
-                     math.degrees(self.calibration.gyro_bias_rps))
+            chord_opt_m=float(np.linalg.norm(pj[:2] - pi[:2])),
+            chord_raw_m=chord_raw,
+            gyro_dyaw_rad=float(sum(d[2] for d in raw)),
+            opt_dyaw_rad=float(pj[2] - pi[2]),
+            dt_s=span_s,
+        )
+        logger.debug(
+            "calibration: scale %.5f gyro bias %.5f deg/s",
+            self.calibration.scale,
+            math.degrees(self.calibration.gyro_bias_rps),
+        )
         self._calib_start = j

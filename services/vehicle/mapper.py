@@ -35,14 +35,25 @@ class VehicleMapper:
     seal_every_frames: committed frames per patch sequence number (each seal emits one patch per
     touched tile with the votes since the previous seal); ipm_stride: pixel subsampling."""
 
-    def __init__(self, *, vehicle: str, traversal: str, camera: CameraModel, segmenter: Segmenter,
-                 roi_x_min_m: float, roi_length_m: float, roi_width_m: float,
-                 estimator: PoseEstimator | None = None, seal_every_frames: int = 100,
-                 ipm_stride: int = 1):
+    def __init__(
+        self,
+        *,
+        vehicle: str,
+        traversal: str,
+        camera: CameraModel,
+        segmenter: Segmenter,
+        roi_x_min_m: float,
+        roi_length_m: float,
+        roi_width_m: float,
+        estimator: PoseEstimator | None = None,
+        seal_every_frames: int = 100,
+        ipm_stride: int = 1,
+    ):
         self.vehicle, self.traversal = vehicle, traversal
         self.segmenter = segmenter
-        self.ipm = build_ipm_lookup(camera, x_min_m=roi_x_min_m, length_m=roi_length_m,
-                                    width_m=roi_width_m)
+        self.ipm = build_ipm_lookup(
+            camera, x_min_m=roi_x_min_m, length_m=roi_length_m, width_m=roi_width_m
+        )
         self.estimator = estimator or PoseEstimator()
         self.seal_every_frames = seal_every_frames
         self.ipm_stride = ipm_stride

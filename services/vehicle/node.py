@@ -34,14 +34,21 @@ STAGES = ("segmentation", "ipm", "pose_graph", "voting", "outbox")
 def build_mapper(log: DriveLog, vehicle: str, cfg: RoadmapConfig, segmenter_kind: str | None):
     """The mapper for one drive log: its camera, the chosen segmenter, the configured estimator."""
     v = cfg.vehicle
-    estimator = PoseEstimator(settle_lag_s=v.settle_lag_s, max_wait_s=v.max_wait_s,
-                              calib_window_s=v.calib_window_s)
+    estimator = PoseEstimator(
+        settle_lag_s=v.settle_lag_s, max_wait_s=v.max_wait_s, calib_window_s=v.calib_window_s
+    )
     return VehicleMapper(
-        vehicle=vehicle, traversal=log.meta.traversal, camera=log.meta.camera,
-        segmenter=_segmenter(log, cfg, segmenter_kind), roi_x_min_m=cfg.roi.x_min_m,
+        vehicle=vehicle,
+        traversal=log.meta.traversal,
+        camera=log.meta.camera,
+        segmenter=_segmenter(log, cfg, segmenter_kind),
+        roi_x_min_m=cfg.roi.x_min_m,
         roi_length_m=min(cfg.roi.length_m, v.max_range_m - cfg.roi.x_min_m),
-        roi_width_m=cfg.roi.width_m, estimator=estimator,
-        seal_every_frames=v.seal_every_frames, ipm_stride=v.ipm_stride)
+        roi_width_m=cfg.roi.width_m,
+        estimator=estimator,
+        seal_every_frames=v.seal_every_frames,
+        ipm_stride=v.ipm_stride,
+    )
 
 
 def _segmenter(log: DriveLog, cfg: RoadmapConfig, kind: str | None):
@@ -69,13 +76,17 @@ class Replay:
     def sensors_until(self, t_ns: int) -> None:
         s, m = self.s, self.mapper
         o = int(np.searchsorted(s["odom_t_ns"], t_ns, "right"))
-        m.process_odometry(s["odom_t_ns"][self._o:o], s["odom_speed_mps"][self._o:o])
+        m.process_odometry(s["odom_t_ns"][self._o : o], s["odom_speed_mps"][self._o : o])
         i = int(np.searchsorted(s["imu_t_ns"], t_ns, "right"))
-        m.process_imu(s["imu_t_ns"][self._i:i], s["imu_yaw_rate_rps"][self._i:i])
+        m.process_imu(s["imu_t_ns"][self._i : i], s["imu_yaw_rate_rps"][self._i : i])
         g = int(np.searchsorted(s["gnss_t_ns"], t_ns, "right"))
         for k in range(self._g, g):
-            m.process_gnss(int(s["gnss_t_ns"][k]), s["gnss_xy_m"][k], float(s["gnss_sigma_m"][k]),
-                           bool(s["gnss_ok"][k]))
+            m.process_gnss(
+                int(s["gnss_t_ns"][k]),
+                s["gnss_xy_m"][k],
+                float(s["gnss_sigma_m"][k]),
+                bool(s["gnss_ok"][k]),
+            )
         self._o, self._i, self._g = o, i, g
 
 
@@ -90,12 +101,16 @@ class StageTimer:
         return out
 
     def summary(self) -> dict:
-        return {k: {"p50": float(np.percentile(v, 50)), "p95": float(np.percentile(v, 95))}
-                for k, v in self.ms.items() if v}
+        return {
+            k: {"p50": float(np.percentile(v, 50)), "p95": float(np.percentile(v, 95))}
+            for k, v in self.ms.items()
+            if v
+        }
 
 
-def map_log(log: DriveLog, mapper: VehicleMapper, on_patches, stop: threading.Event,
-            timer: StageTimer) -> bool:
+def map_log(
+    log: DriveLog, mapper: VehicleMapper, on_patches, stop: threading.Event, timer: StageTimer
+) -> bool:
     """Replay and map the whole log; on_patches(list) gets every sealed batch. False if stopped."""
     replay = Replay(log, mapper)
     for i, t_ns in enumerate(log.streams["frame_t_ns"]):
@@ -127,7 +142,8 @@ class Uploader(threading.Thread):
         self.sent = self.errors = 0
         self._cache: dict[str, GridPatch] = {}
         self._live = session.liveliness().declare_subscriber(
-            keys.alive_all("merger"), self._on_alive, history=True)
+            keys.alive_all("merger"), self._on_alive, history=True
+        )
 
     def _on_alive(self, sample) -> None:
         _, ident = keys.parse_alive(str(sample.key_expr))
@@ -163,7 +179,9 @@ class Uploader(threading.Thread):
             if f"s{shard}" not in self.alive:
                 continue  # wait for the owner (liveliness) rather than drop
             for k in range(0, len(patches), self.cfg.vehicle.upload_batch):
-                if self.stop.is_set() or not self._send(shard, patches[k:k + self.cfg.vehicle.upload_batch]):
+                if self.stop.is_set() or not self._send(
+                    shard, patches[k : k + self.cfg.vehicle.upload_batch]
+                ):
                     break
                 progressed = True
         return progressed
@@ -171,8 +189,9 @@ class Uploader(threading.Thread):
     def _send(self, shard: int, patches: list[GridPatch]) -> bool:
         payload = codec.encode(IngestBatch(patches))
         self.sent += len(patches)
-        replies = self.session.get(keys.ingest(shard), payload=payload,
-                                   timeout=self.cfg.vehicle.upload_timeout_s)
+        replies = self.session.get(
+            keys.ingest(shard), payload=payload, timeout=self.cfg.vehicle.upload_timeout_s
+        )
         for reply in replies:
             if reply.ok is None:
                 continue
@@ -216,8 +235,10 @@ def pose_errors(mapper: VehicleMapper, truth: np.ndarray) -> dict:
     est = mapper.estimator
     n = len(mapper.poses)
     if n == 0:
-        return {k: {"mean": None, "max": None} for k in
-                ("pose_error_m", "outage_pose_error_m", "odometry_only_error_m")}
+        return {
+            k: {"mean": None, "max": None}
+            for k in ("pose_error_m", "outage_pose_error_m", "odometry_only_error_m")
+        }
     poses = np.array([mapper.poses[i] for i in range(n)])
     err = np.linalg.norm(poses[:, :2] - truth[:n, :2], axis=1)
     outage = np.array([not est.covered(i) for i in range(n)])
@@ -235,8 +256,11 @@ def pose_errors(mapper: VehicleMapper, truth: np.ndarray) -> dict:
         odo_err.append(np.linalg.norm(dr[:, :2] - truth[i:j, :2], axis=1))
         i = j
     odo = np.concatenate(odo_err) if odo_err else np.zeros(0)
-    return {"pose_error_m": _stats(err), "outage_pose_error_m": _stats(err[outage]),
-            "odometry_only_error_m": _stats(odo)}
+    return {
+        "pose_error_m": _stats(err),
+        "outage_pose_error_m": _stats(err[outage]),
+        "odometry_only_error_m": _stats(odo),
+    }
 
 
 def _write_json(path: Path, obj) -> None:
@@ -269,7 +293,11 @@ def main(args, cfg: RoadmapConfig) -> int:
     timer = StageTimer()
 
     def on_patches(patches):
-        new = [p for p in patches if int(p.patch_id.rsplit(".", 1)[1]) >= outbox.sealed(log.meta.traversal)]
+        new = [
+            p
+            for p in patches
+            if int(p.patch_id.rsplit(".", 1)[1]) >= outbox.sealed(log.meta.traversal)
+        ]
         outbox.put(new)
         if mapper.seq > outbox.sealed(log.meta.traversal):
             outbox.set_sealed(log.meta.traversal, mapper.seq)
@@ -294,13 +322,21 @@ def main(args, cfg: RoadmapConfig) -> int:
     counts = outbox.counts()
     pending = len(outbox.pending())
     summary = {
-        "vehicle": vehicle, "traversal": log.meta.traversal, "frames": mapper.frames_committed,
-        "patches_sent": uploader.sent, "patches_acked": counts["acked"],
-        "patches_accepted": counts["accepted"], "duplicates": counts["duplicates"],
-        "patches_pending": pending, "errors": uploader.errors, "resumed_from_seq": sealed,
+        "vehicle": vehicle,
+        "traversal": log.meta.traversal,
+        "frames": mapper.frames_committed,
+        "patches_sent": uploader.sent,
+        "patches_acked": counts["acked"],
+        "patches_accepted": counts["accepted"],
+        "duplicates": counts["duplicates"],
+        "patches_pending": pending,
+        "errors": uploader.errors,
+        "resumed_from_seq": sealed,
         **pose_errors(mapper, log.streams["frame_pose_true"]),
-        "calibration": {"odometry_scale": mapper.estimator.calibration.scale,
-                        "gyro_bias_dps": math.degrees(mapper.estimator.calibration.gyro_bias_rps)},
+        "calibration": {
+            "odometry_scale": mapper.estimator.calibration.scale,
+            "gyro_bias_dps": math.degrees(mapper.estimator.calibration.gyro_bias_rps),
+        },
         "per_stage_ms": timer.summary(),
         "mapping_frames_per_s": mapper.frames_committed / map_s if finished and map_s > 0 else None,
         "wall_s": time.perf_counter() - t0,
@@ -308,8 +344,13 @@ def main(args, cfg: RoadmapConfig) -> int:
     _write_json(state / "summary.json", _clean(summary))
     labels, x0, y0 = mapper.local_map()
     np.savez_compressed(state / "local_map.npz", labels=labels, origin_m=np.array([x0, y0]))
-    logger.info("vehicle %s: %d frames, %d patches acked, %d pending", vehicle,
-                mapper.frames_committed, counts["acked"], pending)
+    logger.info(
+        "vehicle %s: %d frames, %d patches acked, %d pending",
+        vehicle,
+        mapper.frames_committed,
+        counts["acked"],
+        pending,
+    )
     if not finished or stop_upload or pending:
         return 1
     return 0

@@ -87,8 +87,11 @@ class Outbox:
     def counts(self) -> dict[str, int]:
         """Unique acked patches, split by the first status the shard gave each."""
         accepted = sum(1 for s in self._acked.values() if s == ACCEPTED)
-        return {"acked": len(self._acked), "accepted": accepted,
-                "duplicates": len(self._acked) - accepted}
+        return {
+            "acked": len(self._acked),
+            "accepted": accepted,
+            "duplicates": len(self._acked) - accepted,
+        }
 
     # -- progress ----------------------------------------------------------------------------
 

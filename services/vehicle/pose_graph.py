@@ -25,7 +25,8 @@ def odometry_sigmas(distance_m: float) -> np.ndarray:
 
 
 class PoseGraph:
-    """Incremental Pose2 graph: collect factors and initial values, `optimize()` sends only the new."""
+    """Incremental Pose2 graph: collects factors and initial values; `optimize()` sends only
+    the new ones to ISAM2."""
 
     def __init__(self, relinearize_threshold: float = RELIN_THRESHOLD):
         params = gtsam.ISAM2Params()
@@ -68,9 +69,11 @@ class PoseGraph:
         the heading error into the position residual."""
         base = gtsam.noiseModel.Isotropic.Sigma(2, float(sigma_m))
         robust = gtsam.noiseModel.Robust.Create(
-            gtsam.noiseModel.mEstimator.Huber.Create(GNSS_HUBER_K), base)
+            gtsam.noiseModel.mEstimator.Huber.Create(GNSS_HUBER_K), base
+        )
         self._new_factors.add(
-            gtsam.PoseTranslationPrior2D(X(key), np.asarray(xy_m, float).reshape(2), robust))
+            gtsam.PoseTranslationPrior2D(X(key), np.asarray(xy_m, float).reshape(2), robust)
+        )
 
     def mark_large_correction(self) -> None:
         """Ask the next optimize() to iterate a few extra times (e.g. GNSS back after an outage)."""
@@ -98,7 +101,9 @@ class PoseGraph:
             values = self._isam.calculateEstimate()
             keys = sorted(self._keys)
             poses = [values.atPose2(X(k)) for k in keys]
-            return {k: np.array([p.x(), p.y(), p.theta()]) for k, p in zip(keys, poses)}
+            return {
+                k: np.array([p.x(), p.y(), p.theta()]) for k, p in zip(keys, poses, strict=True)
+            }
         return {k: self.estimate(k) for k in keys}
 
 

@@ -12,8 +12,9 @@ from common.evaluation import per_class_precision_recall
 from common.world import World
 
 
-def local_map_quality(labels: np.ndarray, x0_m: float, y0_m: float, world: World,
-                      tol_cells: int = 1) -> dict:
+def local_map_quality(
+    labels: np.ndarray, x0_m: float, y0_m: float, world: World, tol_cells: int = 1
+) -> dict:
     """Per marking class precision/recall of `labels` vs `world` inside the observed area."""
     truth = world.rasterize(x0_m, y0_m, labels.shape[0], labels.shape[1])
     seen = labels > 0

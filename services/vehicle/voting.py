@@ -8,7 +8,7 @@ occupied cells. Cells and classes are packed into one int64 key, so every operat
 import numpy as np
 
 from common.classes import NUM_CLASSES
-from common.grid import CELL_M, TILE_CELLS, global_cells, split_global_cells
+from common.grid import CELL_M, global_cells, split_global_cells
 from common.messages import GridPatch
 
 CLASS_BITS = 3
@@ -103,12 +103,20 @@ class VotingGrid:
         tiles, flat, votes = tiles[order], flat[order], votes[order]
         starts = np.flatnonzero(np.any(np.diff(tiles, axis=0) != 0, axis=1)) + 1
         out = []
-        for a, b in zip(np.r_[0, starts], np.r_[starts, len(flat)]):
+        for a, b in zip(np.r_[0, starts], np.r_[starts, len(flat)], strict=True):
             tile = (int(tiles[a, 0]), int(tiles[a, 1]))
-            out.append(GridPatch(
-                patch_id=patch_id(vehicle, traversal, tile, seq), vehicle=vehicle, tile=tile,
-                cells=flat[a:b].astype(np.uint32), votes=votes[a:b], traversal=traversal,
-                t_first_ns=int(self.t_first_ns or 0), t_last_ns=int(self.t_last_ns or 0)))
+            out.append(
+                GridPatch(
+                    patch_id=patch_id(vehicle, traversal, tile, seq),
+                    vehicle=vehicle,
+                    tile=tile,
+                    cells=flat[a:b].astype(np.uint32),
+                    votes=votes[a:b],
+                    traversal=traversal,
+                    t_first_ns=int(self.t_first_ns or 0),
+                    t_last_ns=int(self.t_last_ns or 0),
+                )
+            )
         return out
 
     # -- internals ---------------------------------------------------------------------------
@@ -119,8 +127,9 @@ class VotingGrid:
         self._pending_n += len(keys)
         t_last_ns = t_first_ns if t_last_ns is None else t_last_ns
         if t_first_ns is not None:
-            self.t_first_ns = t_first_ns if self.t_first_ns is None else min(self.t_first_ns,
-                                                                               t_first_ns)
+            self.t_first_ns = (
+                t_first_ns if self.t_first_ns is None else min(self.t_first_ns, t_first_ns)
+            )
             self.t_last_ns = t_last_ns if self.t_last_ns is None else max(self.t_last_ns, t_last_ns)
         if self._pending_n > CONSOLIDATE_POINTS:
             self._consolidate()
@@ -156,4 +165,3 @@ def raster_window(grid: VotingGrid, margin_m: float = 2.0):
     cols = int(round((b[2] + margin_m - x0) / CELL_M))
     rows = int(round((b[3] + margin_m - y0) / CELL_M))
     return grid.label_raster(x0, y0, rows, cols), float(x0), float(y0)
-

@@ -1,4 +1,5 @@
-"""A real ingest shard stand-in for the vehicle tests: acks IngestBatches after a durable SQLite write.
+"""A real ingest shard stand-in for the vehicle tests: acks IngestBatches after a durable
+SQLite write.
 
 `python -m tests.vehicle.ingest_peer --connect EP --db PATH [--shard 0] [--delay S]` declares
 `roadmap/ingest/s<shard>` (complete) and the liveliness token `roadmap/alive/merger/s<shard>`;
@@ -37,10 +38,13 @@ def serve(connect: str, db_path: str, shard: int, delay_s: float) -> None:
                 results = {}
                 db.execute("BEGIN IMMEDIATE")
                 for p in batch.patches:
-                    cur = db.execute("INSERT OR IGNORE INTO applied VALUES (?, ?)",
-                                     (p.patch_id, len(p.cells)))
+                    cur = db.execute(
+                        "INSERT OR IGNORE INTO applied VALUES (?, ?)", (p.patch_id, len(p.cells))
+                    )
                     results[p.patch_id] = ACCEPTED if cur.rowcount == 1 else DUPLICATE
-                    db.execute("INSERT INTO received VALUES (?, ?)", (p.patch_id, results[p.patch_id]))
+                    db.execute(
+                        "INSERT INTO received VALUES (?, ?)", (p.patch_id, results[p.patch_id])
+                    )
                 db.execute("COMMIT")
                 query.reply(query.key_expr, codec.encode(IngestAck(results=results)))
         token.undeclare()

@@ -42,19 +42,34 @@ def road_world(line: np.ndarray) -> World:
     markings = [Marking(Cls.ROAD, _band(line, -4.5, 4.5), "road")]
     for d in (-3.5, 3.5):
         for k in range(0, len(line) - 1, 40):  # pieces of 20 m keep polygons simple
-            markings.append(Marking(Cls.LANE_LINE, _band(line[k:k + 41], d - 0.075, d + 0.075),
-                                    "solid"))
+            markings.append(
+                Marking(Cls.LANE_LINE, _band(line[k : k + 41], d - 0.075, d + 0.075), "solid")
+            )
     for k in range(0, len(line) - 7, 18):
-        markings.append(Marking(Cls.LANE_LINE, _band(line[k:k + 7], -0.075, 0.075), "dashed"))
+        markings.append(Marking(Cls.LANE_LINE, _band(line[k : k + 7], -0.075, 0.075), "dashed"))
     for k in range(200, len(line) - 10, 400):
-        markings.append(Marking(Cls.STOP_LINE, _band(line[k:k + 2], -3.4, -0.1), "stop"))
-    return World("synthetic-road", markings, routes=[_offset(line, -1.75)],
-                 km_of_road=len(line) * 0.5 / 1000.0)
+        markings.append(Marking(Cls.STOP_LINE, _band(line[k : k + 2], -3.4, -0.1), "stop"))
+    return World(
+        "synthetic-road",
+        markings,
+        routes=[_offset(line, -1.75)],
+        km_of_road=len(line) * 0.5 / 1000.0,
+    )
 
 
-def drive(rng, *, length_m=1200.0, speed_mps=10.0, frame_hz=20.0, outage_m=(500.0, 800.0),
-          scale_error=0.005, gyro_bias_dps=0.02, gnss_sigma_m=0.02, gnss_hz=10.0,
-          lane_offset_m=-1.75):
+def drive(
+    rng,
+    *,
+    length_m=1200.0,
+    speed_mps=10.0,
+    frame_hz=20.0,
+    outage_m=(500.0, 800.0),
+    scale_error=0.005,
+    gyro_bias_dps=0.02,
+    gnss_sigma_m=0.02,
+    gnss_hz=10.0,
+    lane_offset_m=-1.75,
+):
     """Streams of a drive along centreline(length_m) in the right lane (drive log layout)."""
     line = _offset(centreline(length_m), lane_offset_m)
     seg = np.linalg.norm(np.diff(line, axis=0), axis=1)
@@ -76,7 +91,11 @@ def drive(rng, *, length_m=1200.0, speed_mps=10.0, frame_hz=20.0, outage_m=(500.
     yaw_rate = np.gradient(truth_imu[:, 2], t_imu)
     gnss_true = truth_at(t_gnss)
     s_gnss = t_gnss * speed_mps
-    ok = ~((s_gnss >= outage_m[0]) & (s_gnss < outage_m[1])) if outage_m else np.ones(len(t_gnss), bool)
+    ok = (
+        ~((s_gnss >= outage_m[0]) & (s_gnss < outage_m[1]))
+        if outage_m
+        else np.ones(len(t_gnss), bool)
+    )
     t_truth = np.arange(0.0, total_s, 0.01)
     return {
         "frame_t_ns": (t_frame * NS).astype(np.int64),
@@ -84,7 +103,8 @@ def drive(rng, *, length_m=1200.0, speed_mps=10.0, frame_hz=20.0, outage_m=(500.
         "odom_t_ns": (t_odom * NS).astype(np.int64),
         "odom_speed_mps": speed_mps * (1 + scale_error) + rng.normal(0, 0.02, len(t_odom)),
         "imu_t_ns": (t_imu * NS).astype(np.int64),
-        "imu_yaw_rate_rps": yaw_rate + math.radians(gyro_bias_dps)
+        "imu_yaw_rate_rps": yaw_rate
+        + math.radians(gyro_bias_dps)
         + rng.normal(0, math.radians(0.1), len(t_imu)),
         "gnss_t_ns": (t_gnss * NS).astype(np.int64),
         "gnss_xy_m": gnss_true[:, :2] + rng.normal(0, gnss_sigma_m, (len(t_gnss), 2)),
@@ -104,7 +124,7 @@ class LabelRenderer:
 
     def __init__(self, world: World, camera: CameraModel, max_range_m: float = 30.0):
         self.camera = camera
-        v, u = np.mgrid[0:camera.height, 0:camera.width]
+        v, u = np.mgrid[0 : camera.height, 0 : camera.width]
         uv = np.stack([u.ravel() + 0.5, v.ravel() + 0.5], axis=1).astype(float)
         g = camera.ground_points(uv)
         self.valid = np.isfinite(g[:, 0]) & (np.hypot(g[:, 0], g[:, 1]) < max_range_m)
@@ -133,9 +153,14 @@ def write_drive_log(root, rng, *, vehicle="map-0", traversal="t0", frame_stride=
     world = road_world(centreline(length_m))
     streams = drive(rng, **drive_kw)
     camera = mapping_camera()
-    meta = DriveLogMeta(vehicle=vehicle, traversal=traversal, profile="mapping",
-                        world={"name": world.name, "origin_lat": 0.0, "origin_lon": 0.0},
-                        camera=camera, notes={"source": "tests/vehicle/synthetic.py"})
+    meta = DriveLogMeta(
+        vehicle=vehicle,
+        traversal=traversal,
+        profile="mapping",
+        world={"name": world.name, "origin_lat": 0.0, "origin_lon": 0.0},
+        camera=camera,
+        notes={"source": "tests/vehicle/synthetic.py"},
+    )
     writer = DriveLogWriter(root, meta)
     renderer = LabelRenderer(world, camera)
     if frame_stride > 1:

@@ -16,9 +16,12 @@ def karlsruhe_drive(shared_data, tmp_path_factory):
     from services.sim.simulate import simulate_drives
     from services.sim.worlds import load_world
 
-    world = load_world("lanelet2:" + str(shared_data / "lanelet2-karlsruhe" / "mapping_example.osm"))
-    (path,) = simulate_drives(world, tmp_path_factory.mktemp("ka"), profile="mapping",
-                              images=False, max_km=0.4)
+    world = load_world(
+        "lanelet2:" + str(shared_data / "lanelet2-karlsruhe" / "mapping_example.osm")
+    )
+    (path,) = simulate_drives(
+        world, tmp_path_factory.mktemp("ka"), profile="mapping", images=False, max_km=0.4
+    )
     log = DriveLog(path)
     mapper = build_mapper(log, log.meta.vehicle, load_config(env={}), "truth")
     map_log(log, mapper, lambda patches: None, threading.Event(), StageTimer())

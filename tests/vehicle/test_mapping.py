@@ -17,7 +17,9 @@ def test_ipm_matches_analytic_projection(rng):
     ipm = build_ipm_lookup(cam, x_min_m=3.0, length_m=12.0, width_m=8.0)
     ground = np.stack([rng.uniform(3.5, 14.5, 300), rng.uniform(-3.5, 3.5, 300), np.zeros(300)], 1)
     uv, front = cam.project_vehicle_points(ground)
-    inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    inside = (
+        front & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    )
     assert inside.sum() > 200
     ground, uv = ground[inside], uv[inside]
     labels = np.zeros((cam.height, cam.width), np.uint8)
@@ -35,14 +37,23 @@ def test_ipm_matches_analytic_projection(rng):
 @pytest.fixture(scope="module")
 def mapped(tmp_path_factory):
     root = tmp_path_factory.mktemp("drive") / "log"
-    _, world, streams = write_drive_log(root, np.random.default_rng(1), length_m=260.0,
-                                        outage_m=(80.0, 180.0), frame_stride=2)
+    _, world, streams = write_drive_log(
+        root, np.random.default_rng(1), length_m=260.0, outage_m=(80.0, 180.0), frame_stride=2
+    )
     log = DriveLog(root)
-    mapper = VehicleMapper(vehicle="map-0", traversal="d0", camera=log.meta.camera,
-                           segmenter=GroundTruthSegmenter(seed=0), roi_x_min_m=3.0,
-                           roi_length_m=12.0, roi_width_m=8.0, seal_every_frames=50)
+    mapper = VehicleMapper(
+        vehicle="map-0",
+        traversal="d0",
+        camera=log.meta.camera,
+        segmenter=GroundTruthSegmenter(seed=0),
+        roi_x_min_m=3.0,
+        roi_length_m=12.0,
+        roi_width_m=8.0,
+        seal_every_frames=50,
+    )
     patches = []
     import threading
+
     map_log(log, mapper, patches.extend, threading.Event(), StageTimer())
     return mapper, world, streams, patches
 

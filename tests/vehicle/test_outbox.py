@@ -8,9 +8,16 @@ from services.vehicle.voting import patch_id
 
 
 def _patch(seq, tile=(0, 0)):
-    return GridPatch(patch_id=patch_id("map-0", "d0", tile, seq), vehicle="map-0", tile=tile,
-                     cells=np.array([1, 5], np.uint32), votes=np.ones((2, 6), np.uint16),
-                     t_first_ns=0, t_last_ns=1, traversal="d0")
+    return GridPatch(
+        patch_id=patch_id("map-0", "d0", tile, seq),
+        vehicle="map-0",
+        tile=tile,
+        cells=np.array([1, 5], np.uint32),
+        votes=np.ones((2, 6), np.uint16),
+        t_first_ns=0,
+        t_last_ns=1,
+        traversal="d0",
+    )
 
 
 def test_patches_stay_until_acked_and_survive_a_reopen(tmp_path):

@@ -17,11 +17,15 @@ def _run_estimator(streams, **kw):
     o = i = g = 0
     poses = {}
     for t in s["frame_t_ns"]:
-        o2, i2, g2 = (int(np.searchsorted(s[k], t, "right")) for k in ("odom_t_ns", "imu_t_ns", "gnss_t_ns"))
+        o2, i2, g2 = (
+            int(np.searchsorted(s[k], t, "right")) for k in ("odom_t_ns", "imu_t_ns", "gnss_t_ns")
+        )
         est.add_odometry(s["odom_t_ns"][o:o2], s["odom_speed_mps"][o:o2])
         est.add_imu(s["imu_t_ns"][i:i2], s["imu_yaw_rate_rps"][i:i2])
         for k in range(g, g2):
-            est.add_gnss(s["gnss_t_ns"][k], s["gnss_xy_m"][k], s["gnss_sigma_m"][k], s["gnss_ok"][k])
+            est.add_gnss(
+                s["gnss_t_ns"][k], s["gnss_xy_m"][k], s["gnss_sigma_m"][k], s["gnss_ok"][k]
+            )
         o, i, g = o2, i2, g2
         est.add_frame(int(t))
         poses.update(est.settled())
@@ -74,7 +78,8 @@ def test_uncalibrated_odometry_drifts_through_the_outage(outage_run):
     a, b = outage[0] - 1, outage[-1]
     pose = s["frame_pose_true"][a].copy()
     from services.vehicle.estimator import dead_reckon
-    dr = dead_reckon(pose, raw[a + 1:b + 1])
+
+    dr = dead_reckon(pose, raw[a + 1 : b + 1])
     end_err = np.linalg.norm(dr[-1, :2] - s["frame_pose_true"][b, :2])
     assert end_err > 0.5  # what the pose graph corrects
 

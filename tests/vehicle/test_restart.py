@@ -1,5 +1,6 @@
-"""A vehicle waits for its shard to be alive; the outbox survives kill -9 of the vehicle process: a restart finishes the upload over a real
-router to a real queryable peer process, and no patch is applied twice."""
+"""A vehicle waits for its shard to be alive; the outbox survives kill -9 of the vehicle
+process: a restart finishes the upload over a real router to a real queryable peer process, and
+no patch is applied twice."""
 
 import json
 import os
@@ -18,8 +19,14 @@ from services.vehicle.node import StageTimer, build_mapper, map_log
 from tests.conftest import REPO
 from tests.vehicle.synthetic import write_drive_log
 
-SETS = ["--set", "grid.shards=1", "--set", "vehicle.upload_batch=1", "--set",
-        "vehicle.seal_every_frames=20"]
+SETS = [
+    "--set",
+    "grid.shards=1",
+    "--set",
+    "vehicle.upload_batch=1",
+    "--set",
+    "vehicle.seal_every_frames=20",
+]
 
 
 def _applied(db) -> list[str]:
@@ -36,9 +43,25 @@ def _applied(db) -> list[str]:
 
 def _vehicle(log, state, router):
     return subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "vehicle", "--log", str(log), "--state", str(state),
-         "--connect", router, "--segmenter", "truth", *SETS],
-        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "vehicle",
+            "--log",
+            str(log),
+            "--state",
+            str(state),
+            "--connect",
+            router,
+            "--segmenter",
+            "truth",
+            *SETS,
+        ],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
 
 
 def _expected_ids(log_dir) -> set[str]:
@@ -52,15 +75,29 @@ def _expected_ids(log_dir) -> set[str]:
 
 def test_outbox_survives_kill_and_restart_without_double_counting(tmp_path, router):
     log_dir = tmp_path / "log"
-    write_drive_log(log_dir, np.random.default_rng(2), length_m=200.0, outage_m=(80.0, 130.0),
-                    frame_stride=2)
+    write_drive_log(
+        log_dir, np.random.default_rng(2), length_m=200.0, outage_m=(80.0, 130.0), frame_stride=2
+    )
     db, state = tmp_path / "peer.db", tmp_path / "state"
     first = _vehicle(log_dir, state, router)  # no shard alive yet: it must wait, not drop
     time.sleep(3.0)
     assert first.poll() is None
     peer = subprocess.Popen(
-        [sys.executable, "-m", "tests.vehicle.ingest_peer", "--connect", router, "--db", str(db),
-         "--delay", "0.15"], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        [
+            sys.executable,
+            "-m",
+            "tests.vehicle.ingest_peer",
+            "--connect",
+            router,
+            "--db",
+            str(db),
+            "--delay",
+            "0.15",
+        ],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
     try:
         deadline = time.monotonic() + 60
         while len(_applied(db)) < 3 and time.monotonic() < deadline and first.poll() is None:

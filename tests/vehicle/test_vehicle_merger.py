@@ -21,9 +21,25 @@ SETS = ["--set", "grid.shards=1", "--set", "vehicle.seal_every_frames=40"]
 
 def _run_vehicle(log, state, router):
     return subprocess.run(
-        [sys.executable, "-m", "services.cli", "vehicle", "--log", str(log), "--state", str(state),
-         "--connect", router, "--segmenter", "truth", *SETS],
-        cwd=REPO, capture_output=True, timeout=180)
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "vehicle",
+            "--log",
+            str(log),
+            "--state",
+            str(state),
+            "--connect",
+            router,
+            "--segmenter",
+            "truth",
+            *SETS,
+        ],
+        cwd=REPO,
+        capture_output=True,
+        timeout=180,
+    )
 
 
 def _merger_counters(router) -> dict:
@@ -40,9 +56,25 @@ def test_vehicle_uploads_to_a_real_shard_exactly_once(tmp_path, router):
     log = tmp_path / "log"
     write_drive_log(log, np.random.default_rng(3), length_m=160.0, outage_m=None, frame_stride=2)
     merger = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "merger", "--shard", "0", "--shards", "1",
-         "--store", str(tmp_path / "s0.sqlite"), "--connect", router, *SETS],
-        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "merger",
+            "--shard",
+            "0",
+            "--shards",
+            "1",
+            "--store",
+            str(tmp_path / "s0.sqlite"),
+            "--connect",
+            router,
+            *SETS,
+        ],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
     try:
         first = _run_vehicle(log, tmp_path / "state-a", router)
         assert first.returncode == 0, first.stderr.decode()[-3000:]

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from common import codec
-from common.classes import Cls, NUM_CLASSES
+from common.classes import NUM_CLASSES, Cls
 from common.errors import CodecError
 from common.grid import CELL_M, TILE_M, cell_centers_m
 from common.messages import GridPatch
@@ -82,13 +82,16 @@ def test_patch_round_trip():
     np.testing.assert_array_equal(q.votes, p.votes)
 
 
-@pytest.mark.parametrize("mutate", [
-    lambda p: {"cells": p.cells[::-1].copy()},  # not sorted
-    lambda p: {"cells": np.array([0, 512 * 512], np.uint32)},  # out of the tile
-    lambda p: {"votes": p.votes[:1]},  # one row short
-    lambda p: {"t_first_ns": 5, "t_last_ns": 4},
-    lambda p: {"patch_id": ""},
-])
+@pytest.mark.parametrize(
+    "mutate",
+    [
+        lambda p: {"cells": p.cells[::-1].copy()},  # not sorted
+        lambda p: {"cells": np.array([0, 512 * 512], np.uint32)},  # out of the tile
+        lambda p: {"votes": p.votes[:1]},  # one row short
+        lambda p: {"t_first_ns": 5, "t_last_ns": 4},
+        lambda p: {"patch_id": ""},
+    ],
+)
 def test_malformed_patches_are_rejected(mutate):
     p = _patch()
     fields = {**p.__dict__, **mutate(p)}
@@ -98,6 +101,7 @@ def test_malformed_patches_are_rejected(mutate):
 
 def test_wrong_votes_dtype_is_rejected():
     import msgpack
+
     p = _patch()
     msg = msgpack.unpackb(codec.encode(p), raw=False)
     msg["body"]["votes"]["dtype"] = "<f4"
