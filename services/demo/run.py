@@ -528,7 +528,9 @@ def format_table(report: dict) -> str:
         n = report["update"]["traversals_to_follow"]
         lines.append(f"repaint: map followed after {n} traversals")
     lines.append(f"map digest {m['digest'][:16]}...  availability(0.5 m) "
-                 f"{_f(loc.get('availability_0_5m'), '{:.2f}')}")
+                 f"{_f(loc.get('availability_0_5m'), '{:.2f}')}  convergence "
+                 f"{_f(loc.get('convergence_s'), '{:.1f}')} s  segmenter "
+                 f"{report['segmentation']['model']}")
     return "\n".join(lines) + "\n"
 
 
