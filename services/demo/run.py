@@ -49,7 +49,7 @@ class DemoRun:
     """One demo run in OUT: drives, fleet, fetch, evaluation, report. Steps are methods."""
 
     def __init__(self, args, cfg: RoadmapConfig):
-        cfg = with_shards(cfg, args.shards)
+        cfg = fleet_config(cfg, args.shards)
         if cfg.demo.segmenter not in ("truth", "onnx"):
             raise ConfigError(f"demo.segmenter must be truth or onnx, got {cfg.demo.segmenter!r}")
         self.args, self.cfg, self.d = args, cfg, cfg.demo
@@ -481,9 +481,14 @@ def _paste_within(mosaic, fetched: dict) -> np.ndarray:
     return mosaic.paste([fetched["tiles"][i] for i in keep], [fetched["raw"][i] for i in keep])
 
 
-def with_shards(cfg: RoadmapConfig, shards: int) -> RoadmapConfig:
-    """The config every process of the fleet gets: grid.shards = the number of shards started."""
-    return dataclasses.replace(cfg, grid=dataclasses.replace(cfg.grid, shards=shards))
+def fleet_config(cfg: RoadmapConfig, shards: int) -> RoadmapConfig:
+    """The config every process of the fleet gets: grid.shards = the number of shards started,
+    and the production car uses the fleet's segmenter (demo.segmenter)."""
+    cfg = dataclasses.replace(cfg, grid=dataclasses.replace(cfg.grid, shards=shards))
+    if hasattr(cfg, "localizer"):
+        loc = dataclasses.replace(cfg.localizer, segmenter=cfg.demo.segmenter)
+        cfg = dataclasses.replace(cfg, localizer=loc)
+    return cfg
 
 
 def _has_files(path: Path) -> bool:
@@ -551,7 +556,7 @@ def up_command(args, cfg: RoadmapConfig) -> int:
 
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    cfg = with_shards(cfg, args.shards)
+    cfg = fleet_config(cfg, args.shards)
     (out / "config.toml").write_text(to_toml(cfg))
     stop = stop_event()
     with Supervisor(out / "logs", config=out / "config.toml") as sup:
