@@ -159,7 +159,7 @@ class PoseEstimator:
 
     def add_gnss(self, t_ns: int, xy_m, sigma_m: float, ok: bool) -> None:
         """A GNSS fix; bad fixes (ok False) are ignored, as the paper uses only good RTK fixes."""
-        if ok and np.all(np.isfinite(xy_m)):
+        if ok and np.all(np.isfinite(xy_m)) and np.isfinite(sigma_m) and sigma_m > 0:
             self._pending_fixes.append((int(t_ns), np.asarray(xy_m, float), float(sigma_m)))
 
     def add_frame(self, t_ns: int) -> int:
@@ -270,13 +270,15 @@ class PoseEstimator:
         self.graph.add_odometry(i - 1, i, self._nodes[i].delta)
 
     def _try_initialize(self) -> None:
-        """Align the dead-reckoned start with GNSS once the fixes span init_baseline_m."""
-        local = dead_reckon(np.zeros(3), [n.delta for n in self._nodes[1:]])
+        """Align the dead-reckoned start with GNSS once the fixes span init_baseline_m (and ten
+        fix sigmas, so consumer-GNSS noise of a standing car never fakes a heading)."""
         if len(self._fixes) < 2:
             return
         gxy = np.array([f[2] for f in self._fixes])
-        if np.max(np.linalg.norm(gxy - gxy[0], axis=1)) < self.init_baseline_m:
+        baseline_m = max(self.init_baseline_m, 10.0 * max(f[3] for f in self._fixes))
+        if np.max(np.linalg.norm(gxy - gxy[0], axis=1)) < baseline_m:
             return
+        local = dead_reckon(np.zeros(3), [n.delta for n in self._nodes[1:]])
         src = np.array([local[f[0], :2] for f in self._fixes])
         yaw, t = fit_rigid_2d(src, gxy)
         start = np.array([t[0], t[1], yaw])
