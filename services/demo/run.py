@@ -50,6 +50,8 @@ class DemoRun:
 
     def __init__(self, args, cfg: RoadmapConfig):
         cfg = fleet_config(cfg, args.shards)
+        if args.vehicles < 1 or args.shards < 1:
+            raise ConfigError("roadmap demo needs --vehicles >= 1 and --shards >= 1")
         if cfg.demo.segmenter not in ("truth", "onnx"):
             raise ConfigError(f"demo.segmenter must be truth or onnx, got {cfg.demo.segmenter!r}")
         self.args, self.cfg, self.d = args, cfg, cfg.demo
