@@ -65,8 +65,10 @@ class PoseGraph:
         """Unary position factor: translation of pose `key` is `xy_m` (world) with `sigma_m`.
 
         PoseTranslationPrior2D compares only the translation (its Jacobian is [R 0]), so the
-        yaw is left free, unlike a PriorFactorPose2 with a huge yaw sigma whose Logmap couples
-        the heading error into the position residual."""
+        yaw is left free and the residual is exactly the world position error. A PriorFactorPose2
+        with a 1e3 rad yaw sigma needs an arbitrary yaw and couples it through Logmap; measured on
+        the 300 m outage drive rotated by 0 / 1.5 / 2.8 rad it was as fast and 0.008-0.011 m
+        outage error vs 0.012 m here, but this factor's result is invariant to the rotation."""
         base = gtsam.noiseModel.Isotropic.Sigma(2, float(sigma_m))
         robust = gtsam.noiseModel.Robust.Create(
             gtsam.noiseModel.mEstimator.Huber.Create(GNSS_HUBER_K), base
