@@ -1,6 +1,11 @@
-"""Localizer benchmark: per-frame latency of matching (ICP) and of the EKF, and tile decoding.
+"""Localizer benchmark: per-frame latency of matching (ICP) and of the EKF, and tile decoding;
+and (--world) accuracy on a simulated production drive.
 
     python bench/bench_localizer.py --out DIR [--quick]   -> DIR/localizer.json
+    python bench/bench_localizer.py --out DIR --world town --km 0.5 --seed 1 [--codec raw]
+        -> DIR/accuracy/localization.json: `roadmap localize` (node, real router, tiles served
+        over Zenoh) on a production drive against the world's ground-truth raster coded with
+        common.contours (or raw): the map the mapping fleet would build if it were perfect.
 
 A seeded synthetic production drive along a two-lane road with stop lines, crosswalks and arrows
 (tests/localizer/synthetic.py): the map is the ground-truth raster coded with common.contours
@@ -121,12 +126,67 @@ def run(quick: bool = False) -> dict:
     }
 
 
+def sim_accuracy(out: Path, *, world: str = "town", km: float = 0.5, seed: int = 1,
+                 codec_name: str = "contour", sets: tuple = ()) -> dict:
+    """`roadmap localize` on a simulated production drive against the ground-truth map."""
+    import argparse as _ap
+    import subprocess
+
+    from common import codec, keys
+    from common.bus import free_tcp_port, open_session, wait_for_tcp
+    from common.config import BusConfig, load_config
+    from common.contours import CODEC, RAW_CODEC, encode_raw
+    from common.messages import Tile
+    from services.localizer.node import main as localize
+    from services.sim.simulate import simulate_drives
+    from services.sim.worlds import load_world
+
+    w = load_world(world, 0)
+    logs = simulate_drives(w, out / "logs", profile="production", images=False, max_km=km,
+                           seed=seed)
+    tiles = {t: (encode_tile(lab), encode_raw(lab)) for t, lab in world_tiles(w).items()}
+    port = free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    router = subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen",
+                               endpoint], cwd=REPO)
+    try:
+        wait_for_tcp("127.0.0.1", port, 15.0)
+        with open_session(BusConfig(connect=[endpoint])) as server:
+            for tile, (contour, raw) in tiles.items():
+                def on_query(q, tile=tile, contour=contour, raw=raw):
+                    with q:
+                        want_raw = dict(q.parameters).get("codec") == "raw"
+                        msg = Tile(tile, 1, RAW_CODEC if want_raw else CODEC,
+                                   raw if want_raw else contour)
+                        q.reply(q.key_expr, codec.encode(msg))
+                server.declare_queryable(keys.tile(*tile), on_query, complete=True)
+            cfg = load_config(sets=[f'bus.connect=["{endpoint}"]',
+                                    f'localizer.map_codec="{codec_name}"', *sets])
+            localize(_ap.Namespace(log=str(logs[0]), out=str(out / "accuracy"), id=None), cfg)
+    finally:
+        router.terminate()
+        router.wait(10)
+    return json.loads((out / "accuracy" / "localization.json").read_text())
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="out")
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--world", default=None, help="accuracy run on this world (e.g. town)")
+    parser.add_argument("--km", type=float, default=0.5)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--codec", choices=["contour", "raw"], default="contour")
+    parser.add_argument("--set", action="append", default=[], help="localizer.KEY=VALUE")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO)
+    if args.world:
+        from services.localizer.metrics import summary_line
+
+        acc = sim_accuracy(Path(args.out), world=args.world, km=args.km, seed=args.seed,
+                           codec_name=args.codec, sets=tuple(args.set))
+        sys.stdout.write(summary_line(acc) + "\n")
+        return 0
     result = {"cores_used": 1, "cpu_count": os.cpu_count(), **run(args.quick)}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
