@@ -30,8 +30,7 @@ from common.contours import decode_tile, encode_tile  # noqa: E402
 from services.localizer.localizer import get_localizer, replay  # noqa: E402
 from services.localizer.map_cache import TileCache  # noqa: E402
 from services.localizer.metrics import localization_metrics  # noqa: E402
-from tests.localizer.synthetic import (  # noqa: E402
-    frame_points, straight_road, synthetic_drive, world_tiles)
+from tests.localizer.synthetic import frame_points, straight_road, synthetic_drive, world_tiles  # noqa: E402
 
 logger = logging.getLogger("bench.localizer")
 
@@ -60,8 +59,12 @@ class _Timed:
 def _stage(ms: list[float]) -> dict:
     a = np.asarray(ms, dtype=float)
     p50 = float(np.percentile(a, 50))
-    return {"p50_ms": round(p50, 3), "p95_ms": round(float(np.percentile(a, 95)), 3),
-            "per_s": round(1e3 / p50, 1) if p50 > 0 else None, "n": int(len(a))}
+    return {
+        "p50_ms": round(p50, 3),
+        "p95_ms": round(float(np.percentile(a, 95)), 3),
+        "per_s": round(1e3 / p50, 1) if p50 > 0 else None,
+        "n": int(len(a)),
+    }
 
 
 def run(quick: bool = False) -> dict:
@@ -98,15 +101,18 @@ def run(quick: bool = False) -> dict:
         frame_ms.append((time.perf_counter() - t_frame["t"]) * 1e3)
 
     est = replay(loc, streams, points, done)
-    tracking = [ms for ms, e in zip(frame_ms, est) if e.diag.get("state") == "tracking"]
-    m = localization_metrics(streams["frame_t_ns"], np.array([e.pose for e in est]),
-                             streams["frame_pose_true"])
+    tracking = [
+        ms for ms, e in zip(frame_ms, est, strict=False) if e.diag.get("state") == "tracking"
+    ]
+    m = localization_metrics(
+        streams["frame_t_ns"], np.array([e.pose for e in est]), streams["frame_pose_true"]
+    )
     # EKF per frame = its updates + the predictions between two frames
     predicts_per_frame = max(len(predict_ms) // max(len(frame_ms), 1), 1)
     ekf_frame = np.asarray(update_ms) + np.median(predict_ms) * predicts_per_frame
     return {
         "stages": {
-            "localizer_match": _stage(match_ms[-len(tracking):] if tracking else match_ms),
+            "localizer_match": _stage(match_ms[-len(tracking) :] if tracking else match_ms),
             "localizer_ekf": _stage(ekf_frame),
             "localizer_frame": _stage(tracking),
             "tile_decode": _stage(decode_ms),
@@ -118,16 +124,24 @@ def run(quick: bool = False) -> dict:
             "tile_kb_mean": round(float(np.mean(sizes)) / 1024, 2),
             "frames": len(frame_ms),
             "points_per_frame": LocalizerConfig().max_points,
-            "synthetic_accuracy": {k: m[k] for k in ("x_m", "y_m", "yaw_deg", "availability_0_5m",
-                                                     "convergence_s")},
+            "synthetic_accuracy": {
+                k: m[k] for k in ("x_m", "y_m", "yaw_deg", "availability_0_5m", "convergence_s")
+            },
             "note": "synthetic straight road, ground-truth map coded contour/1; one core; "
-                    "segmentation excluded",
+            "segmentation excluded",
         },
     }
 
 
-def sim_accuracy(out: Path, *, world: str = "town", km: float = 0.5, seed: int = 1,
-                 codec_name: str = "contour", sets: tuple = ()) -> dict:
+def sim_accuracy(
+    out: Path,
+    *,
+    world: str = "town",
+    km: float = 0.5,
+    seed: int = 1,
+    codec_name: str = "contour",
+    sets: tuple = (),
+) -> dict:
     """`roadmap localize` on a simulated production drive against the ground-truth map."""
     import argparse as _ap
     import subprocess
@@ -142,26 +156,32 @@ def sim_accuracy(out: Path, *, world: str = "town", km: float = 0.5, seed: int =
     from services.sim.worlds import load_world
 
     w = load_world(world, 0)
-    logs = simulate_drives(w, out / "logs", profile="production", images=False, max_km=km,
-                           seed=seed)
+    logs = simulate_drives(
+        w, out / "logs", profile="production", images=False, max_km=km, seed=seed
+    )
     tiles = {t: (encode_tile(lab), encode_raw(lab)) for t, lab in world_tiles(w).items()}
     port = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    router = subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen",
-                               endpoint], cwd=REPO)
+    router = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "router", "--listen", endpoint], cwd=REPO
+    )
     try:
         wait_for_tcp("127.0.0.1", port, 15.0)
         with open_session(BusConfig(connect=[endpoint])) as server:
             for tile, (contour, raw) in tiles.items():
+
                 def on_query(q, tile=tile, contour=contour, raw=raw):
                     with q:
                         want_raw = dict(q.parameters).get("codec") == "raw"
-                        msg = Tile(tile, 1, RAW_CODEC if want_raw else CODEC,
-                                   raw if want_raw else contour)
+                        msg = Tile(
+                            tile, 1, RAW_CODEC if want_raw else CODEC, raw if want_raw else contour
+                        )
                         q.reply(q.key_expr, codec.encode(msg))
+
                 server.declare_queryable(keys.tile(*tile), on_query, complete=True)
-            cfg = load_config(sets=[f'bus.connect=["{endpoint}"]',
-                                    f'localizer.map_codec="{codec_name}"', *sets])
+            cfg = load_config(
+                sets=[f'bus.connect=["{endpoint}"]', f'localizer.map_codec="{codec_name}"', *sets]
+            )
             localize(_ap.Namespace(log=str(logs[0]), out=str(out / "accuracy"), id=None), cfg)
     finally:
         router.terminate()
@@ -183,8 +203,14 @@ def main() -> int:
     if args.world:
         from services.localizer.metrics import summary_line
 
-        acc = sim_accuracy(Path(args.out), world=args.world, km=args.km, seed=args.seed,
-                           codec_name=args.codec, sets=tuple(args.set))
+        acc = sim_accuracy(
+            Path(args.out),
+            world=args.world,
+            km=args.km,
+            seed=args.seed,
+            codec_name=args.codec,
+            sets=tuple(args.set),
+        )
         sys.stdout.write(summary_line(acc) + "\n")
         return 0
     result = {"cores_used": 1, "cpu_count": os.cpu_count(), **run(args.quick)}

@@ -1,7 +1,8 @@
 """EKF over the planar pose (x, y, yaw) in the world frame plus the wheel-odometry scale factor
 and the gyro bias (filterpy's ExtendedKalmanFilter).
 
-Predict from wheel speed (m/s, times the estimated scale) and gyro yaw rate (rad/s); update with an ICP pose (its 3x3
+Predict from wheel speed (m/s, times the estimated scale) and gyro yaw rate (rad/s); update
+with an ICP pose (its 3x3
 covariance) or a consumer GNSS position. Every update is gated by the Mahalanobis distance of its
 innovation (chi-square); angle residuals are wrapped. `ok` is the integrity flag: False when the
 position uncertainty grows past a bound or too many updates in a row were rejected."""
@@ -32,20 +33,35 @@ class _PlanarEKF(ExtendedKalmanFilter):
         w = w - x[4]
         yaw_mid = x[2] + 0.5 * w * dt
         d = x[3] * v * dt
-        x_new = np.array([x[0] + d * math.cos(yaw_mid), x[1] + d * math.sin(yaw_mid),
-                          float(wrap_angle(x[2] + w * dt)), x[3], x[4]])
+        x_new = np.array(
+            [
+                x[0] + d * math.cos(yaw_mid),
+                x[1] + d * math.sin(yaw_mid),
+                float(wrap_angle(x[2] + w * dt)),
+                x[3],
+                x[4],
+            ]
+        )
         self.x = x_new.reshape(self.x.shape)
 
 
 class PoseFilter:
     """(x, y, yaw, odometry scale) EKF with gating and an integrity flag; numpy in and out."""
 
-    def __init__(self, *, speed_sigma_rel: float = 0.005, speed_sigma_mps: float = 0.05,
-                 yaw_rate_sigma_rps: float = math.radians(0.3), gate_prob_chi2: dict | None = None,
-                 max_position_sigma_m: float = 1.0, max_rejections: int = 20,
-                 scale_sigma0: float = 0.03, scale_walk_per_s: float = 1e-3,
-                 gyro_bias_sigma0_rps: float = math.radians(0.1),
-                 gyro_bias_walk_rps: float = math.radians(0.002)):
+    def __init__(
+        self,
+        *,
+        speed_sigma_rel: float = 0.005,
+        speed_sigma_mps: float = 0.05,
+        yaw_rate_sigma_rps: float = math.radians(0.3),
+        gate_prob_chi2: dict | None = None,
+        max_position_sigma_m: float = 1.0,
+        max_rejections: int = 20,
+        scale_sigma0: float = 0.03,
+        scale_walk_per_s: float = 1e-3,
+        gyro_bias_sigma0_rps: float = math.radians(0.1),
+        gyro_bias_walk_rps: float = math.radians(0.002),
+    ):
         self.speed_sigma_rel = speed_sigma_rel
         self.speed_sigma_mps = speed_sigma_mps
         self.yaw_rate_sigma_rps = yaw_rate_sigma_rps
@@ -96,8 +112,11 @@ class PoseFilter:
 
     @property
     def ok(self) -> bool:
-        return (self.initialized and self.position_sigma_m <= self.max_position_sigma_m
-                and self.rejections < self.max_rejections)
+        return (
+            self.initialized
+            and self.position_sigma_m <= self.max_position_sigma_m
+            and self.rejections < self.max_rejections
+        )
 
     # -- verbs ------------------------------------------------------------------------------
 
@@ -111,16 +130,24 @@ class PoseFilter:
         h = 0.5 * dt_s
         # Jacobians of the motion model w.r.t. the state (x, y, yaw, scale, gyro bias) and the
         # inputs (v, w)
-        self.ekf.F = np.array([[1.0, 0.0, -d * s, speed_mps * dt_s * c, d * s * h],
-                               [0.0, 1.0, d * c, speed_mps * dt_s * s, -d * c * h],
-                               [0.0, 0.0, 1.0, 0.0, -dt_s],
-                               [0.0, 0.0, 0.0, 1.0, 0.0],
-                               [0.0, 0.0, 0.0, 0.0, 1.0]])
-        G = np.array([[k * dt_s * c, -d * s * h],
-                      [k * dt_s * s, d * c * h],
-                      [0.0, dt_s],
-                      [0.0, 0.0],
-                      [0.0, 0.0]])
+        self.ekf.F = np.array(
+            [
+                [1.0, 0.0, -d * s, speed_mps * dt_s * c, d * s * h],
+                [0.0, 1.0, d * c, speed_mps * dt_s * s, -d * c * h],
+                [0.0, 0.0, 1.0, 0.0, -dt_s],
+                [0.0, 0.0, 0.0, 1.0, 0.0],
+                [0.0, 0.0, 0.0, 0.0, 1.0],
+            ]
+        )
+        G = np.array(
+            [
+                [k * dt_s * c, -d * s * h],
+                [k * dt_s * s, d * c * h],
+                [0.0, dt_s],
+                [0.0, 0.0],
+                [0.0, 0.0],
+            ]
+        )
         sv = self.speed_sigma_rel * abs(speed_mps) + self.speed_sigma_mps
         Q = G @ np.diag([sv**2, self.yaw_rate_sigma_rps**2]) @ G.T
         Q[3, 3] = self.scale_walk_per_s**2 * dt_s
@@ -132,8 +159,9 @@ class PoseFilter:
         """ICP pose measurement; False if gated out."""
         return self._update(np.asarray(pose, float), np.eye(3, 5), np.asarray(cov, float))
 
-    def update_posterior(self, pose: np.ndarray, information: np.ndarray,
-                         gate_chi2: float = 16.27) -> bool:
+    def update_posterior(
+        self, pose: np.ndarray, information: np.ndarray, gate_chi2: float = 16.27
+    ) -> bool:
         """Accept a pose already fused with this filter's prediction (ICP with the prediction as
         its prior) together with the information its measurements added (3x3 over the pose).
 
@@ -187,7 +215,12 @@ class PoseFilter:
             self.rejections += 1
             return False
         self.rejections = 0
-        self.ekf.update(z.reshape(-1, 1), lambda _x: H, lambda x: H @ x, R=R,
-                        residual=lambda a, b: _pose_residual(a.reshape(-1), b.reshape(-1)).reshape(-1, 1))
+        self.ekf.update(
+            z.reshape(-1, 1),
+            lambda _x: H,
+            lambda x: H @ x,
+            R=R,
+            residual=lambda a, b: _pose_residual(a.reshape(-1), b.reshape(-1)).reshape(-1, 1),
+        )
         self.ekf.x[2, 0] = float(wrap_angle(self.ekf.x[2, 0]))
         return True

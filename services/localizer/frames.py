@@ -10,10 +10,17 @@ from common.camera import CameraModel, build_ipm_lookup
 
 
 class FramePoints:
-    """IPM lookup of a camera with its attitude jacobians (M, 2, 2): d ground xy / d (pitch, roll)."""
+    """IPM lookup with its attitude jacobians (M, 2, 2) = d ground xy / d (pitch, roll)."""
 
-    def __init__(self, camera: CameraModel, *, x_min_m: float, length_m: float, width_m: float,
-                 delta_rad: float = math.radians(0.25)):
+    def __init__(
+        self,
+        camera: CameraModel,
+        *,
+        x_min_m: float,
+        length_m: float,
+        width_m: float,
+        delta_rad: float = math.radians(0.25),
+    ):
         self.ipm = build_ipm_lookup(camera, x_min_m=x_min_m, length_m=length_m, width_m=width_m)
         idx = self.ipm.pixel_index
         uv = np.stack([idx % camera.width + 0.5, idx // camera.width + 0.5], axis=1).astype(float)
@@ -26,7 +33,7 @@ class FramePoints:
         self.jacobians = np.nan_to_num(jac, nan=0.0).astype(np.float32)
 
     def points(self, labels: np.ndarray, stride: int = 1):
-        """Label image -> (points (K, 2), classes (K,), jacobians (K, 2, 2)) of labelled ROI pixels."""
+        """Labels -> (points (K, 2), classes (K,), jacobians (K, 2, 2)) of labelled ROI pixels."""
         if stride > 1:
             sub = np.zeros_like(labels)
             sub[::stride, ::stride] = labels[::stride, ::stride]

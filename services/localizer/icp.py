@@ -84,11 +84,23 @@ class Icp:
     calibration error): IPM points move with the attitude by their jacobians (common.camera
     perturbed), so far points are not mistaken for a longitudinal shift."""
 
-    def __init__(self, *, iterations: int = 12, gate_start_m: float = 1.5, gate_end_m: float = 0.4,
-                 huber_m: float = 0.1, yaw_lever_m: float = 8.0, degenerate_ratio: float = 1e-3,
-                 cov_scale: float = 4.0, point_sigma_m: float = 0.05, probe_m: float = 0.1,
-                 attitude_sigma_rad: float = math.radians(0.6), min_sigma_m: float = 0.01,
-                 min_sigma_yaw_rad: float = 0.001, min_points: int = 30):
+    def __init__(
+        self,
+        *,
+        iterations: int = 12,
+        gate_start_m: float = 1.5,
+        gate_end_m: float = 0.4,
+        huber_m: float = 0.1,
+        yaw_lever_m: float = 8.0,
+        degenerate_ratio: float = 1e-3,
+        cov_scale: float = 4.0,
+        point_sigma_m: float = 0.05,
+        probe_m: float = 0.1,
+        attitude_sigma_rad: float = math.radians(0.6),
+        min_sigma_m: float = 0.01,
+        min_sigma_yaw_rad: float = 0.001,
+        min_points: int = 30,
+    ):
         self.iterations = iterations
         self.gate_start_m, self.gate_end_m = gate_start_m, gate_end_m
         self.huber_m = huber_m
@@ -101,9 +113,16 @@ class Icp:
         self.min_sigma_m, self.min_sigma_yaw_rad = min_sigma_m, min_sigma_yaw_rad
         self.min_points = min_points
 
-    def register(self, points_v: np.ndarray, slots: np.ndarray, pose0: np.ndarray, local_map,
-                 jacobians: np.ndarray | None = None, prior_cov: np.ndarray | None = None,
-                 gate_start_m: float | None = None):
+    def register(
+        self,
+        points_v: np.ndarray,
+        slots: np.ndarray,
+        pose0: np.ndarray,
+        local_map,
+        jacobians: np.ndarray | None = None,
+        prior_cov: np.ndarray | None = None,
+        gate_start_m: float | None = None,
+    ):
         """Align points (N, 2) of class slots (N,) to the map from an initial pose; None if too few.
 
         jacobians: optional (N, 2, k) derivatives of the points w.r.t. camera pitch and roll.
@@ -119,16 +138,25 @@ class Icp:
         jac = None if jacobians is None else np.asarray(jacobians, dtype=np.float64)
         att = np.zeros(0 if jac is None else jac.shape[2])
         scale = np.array([1.0, 1.0, self.yaw_lever_m])  # information in comparable units
-        prior = None if prior_cov is None else (
-            self.point_sigma_m**2 * self.cov_scale * np.linalg.inv(prior_cov))
+        prior = (
+            None
+            if prior_cov is None
+            else (self.point_sigma_m**2 * self.cov_scale * np.linalg.inv(prior_cov))
+        )
         pose_prior = pose.copy()
         it = 0
         for it in range(self.iterations):
             gate = g0 + (self.gate_end_m - g0) * it / max(self.iterations - 1, 1)
             pts = _moved(pts0, jac, att)
             nearest, valid = local_map.nearest(_to_world(pts, pose), slots)
-            H, g, err, inl, w = _normal_equations(pts[valid], None if jac is None else jac[valid],
-                                                  nearest[valid], pose, gate, self.huber_m)
+            H, g, err, inl, w = _normal_equations(
+                pts[valid],
+                None if jac is None else jac[valid],
+                nearest[valid],
+                pose,
+                gate,
+                self.huber_m,
+            )
             if inl.sum() < self.min_points:
                 return None
             if prior is not None:
@@ -151,8 +179,9 @@ class Icp:
         Hpp, Hpa, Haa = H[:3, :3], H[:3, 3:], H[3:, 3:] + self.attitude_prior * np.eye(len(att))
         gp, ga = g[:3], g[3:] + self.attitude_prior * att
         Haa_inv = np.linalg.inv(Haa)
-        step = _constrained_step(Hpp - Hpa @ Haa_inv @ Hpa.T, gp - Hpa @ Haa_inv @ ga, scale,
-                                 self.degenerate_ratio)
+        step = _constrained_step(
+            Hpp - Hpa @ Haa_inv @ Hpa.T, gp - Hpa @ Haa_inv @ ga, scale, self.degenerate_ratio
+        )
         return step, -Haa_inv @ (ga + Hpa.T @ step)
 
     def _pose_information(self, H, n_att):
@@ -163,10 +192,12 @@ class Icp:
 
     def _result(self, pts, jac, slots, pose, local_map, scale, iterations, att) -> IcpResult:
         nearest, valid = local_map.nearest(_to_world(pts, pose), slots)
-        _, _, err, inl, w = _normal_equations(pts[valid], None, nearest[valid], pose,
-                                              self.gate_end_m, self.huber_m)
-        H = self._pose_information(self._smoothed_information(pts, jac, slots, pose, local_map,
-                                                              scale), len(att))
+        _, _, err, inl, w = _normal_equations(
+            pts[valid], None, nearest[valid], pose, self.gate_end_m, self.huber_m
+        )
+        H = self._pose_information(
+            self._smoothed_information(pts, jac, slots, pose, local_map, scale), len(att)
+        )
         cov, inflation, eigs, weak, degenerate = _covariance(H, scale, self.degenerate_ratio)
         cov = cov * self.point_sigma_m**2 * self.cov_scale + inflation
         info = np.linalg.pinv(cov - inflation) if degenerate else np.linalg.inv(cov)
@@ -175,8 +206,9 @@ class Icp:
         cov[2, 2] += self.min_sigma_yaw_rad**2
         n = int(inl.sum())
         rmse = float(np.sqrt(np.mean(err[inl] ** 2))) if n else float("inf")
-        return IcpResult(pose, cov, n, len(pts), rmse, degenerate, weak, eigs, iterations, att,
-                         info)
+        return IcpResult(
+            pose, cov, n, len(pts), rmse, degenerate, weak, eigs, iterations, att, info
+        )
 
     def _smoothed_information(self, pts, jac, slots, pose, local_map, scale):
         """Information matrix averaged over poses a probe step away in each direction.
@@ -189,8 +221,14 @@ class Icp:
                 probe = pose.copy()
                 probe[k] += sign * self.probe_m / scale[k]
                 nearest, valid = local_map.nearest(_to_world(pts, probe), slots)
-                Hk, *_ = _normal_equations(pts[valid], None if jac is None else jac[valid],
-                                           nearest[valid], probe, self.gate_end_m, self.huber_m)
+                Hk, *_ = _normal_equations(
+                    pts[valid],
+                    None if jac is None else jac[valid],
+                    nearest[valid],
+                    probe,
+                    self.gate_end_m,
+                    self.huber_m,
+                )
                 H = H + Hk / 6.0
         return H
 
@@ -201,8 +239,10 @@ def _moved(pts0, jac, att):
 
 def _to_world(pts_v: np.ndarray, pose: np.ndarray) -> np.ndarray:
     c, s = math.cos(pose[2]), math.sin(pose[2])
-    return np.stack([c * pts_v[:, 0] - s * pts_v[:, 1] + pose[0],
-                     s * pts_v[:, 0] + c * pts_v[:, 1] + pose[1]], axis=1)
+    return np.stack(
+        [c * pts_v[:, 0] - s * pts_v[:, 1] + pose[0], s * pts_v[:, 0] + c * pts_v[:, 1] + pose[1]],
+        axis=1,
+    )
 
 
 def _scaled_eig(H: np.ndarray, scale: np.ndarray):

@@ -14,8 +14,13 @@ import numpy as np
 from common.classes import Cls
 from common.grid import CELL_M
 
-CLASS_WEIGHT = {Cls.ROAD: 0.3, Cls.LANE_LINE: 1.0, Cls.STOP_LINE: 2.0, Cls.CROSSWALK: 1.5,
-                Cls.GROUND_SIGN: 2.0}
+CLASS_WEIGHT = {
+    Cls.ROAD: 0.3,
+    Cls.LANE_LINE: 1.0,
+    Cls.STOP_LINE: 2.0,
+    Cls.CROSSWALK: 1.5,
+    Cls.GROUND_SIGN: 2.0,
+}
 
 
 @dataclass(frozen=True)
@@ -43,9 +48,18 @@ def class_bits_window(cache, x0_m: float, y0_m: float, size_cells: int, dilate_c
 class CoarseSearch:
     """Exhaustive pose search on a dilated class window; pure numpy."""
 
-    def __init__(self, *, radius_m: float = 6.0, step_m: float = 0.5, yaw_step_deg: float = 2.0,
-                 yaw_window_deg: float = 25.0, dilate_m: float = 0.35, max_points: int = 400,
-                 top_k: int = 6, seed: int = 0):
+    def __init__(
+        self,
+        *,
+        radius_m: float = 6.0,
+        step_m: float = 0.5,
+        yaw_step_deg: float = 2.0,
+        yaw_window_deg: float = 25.0,
+        dilate_m: float = 0.35,
+        max_points: int = 400,
+        top_k: int = 6,
+        seed: int = 0,
+    ):
         self.radius_m, self.step_m = radius_m, step_m
         self.yaw_step = math.radians(yaw_step_deg)
         self.yaw_window = math.radians(yaw_window_deg)
@@ -72,16 +86,16 @@ class CoarseSearch:
         x0, y0 = centres.min(axis=0) - reach
         size = int(math.ceil((np.ptp(centres, axis=0).max() + 2 * reach) / CELL_M))
         win = class_bits_window(cache, x0, y0, size, self.dilate_cells)
-        bit = (np.uint8(1) << cls.astype(np.uint8))
+        bit = np.uint8(1) << cls.astype(np.uint8)
         weight = np.array([CLASS_WEIGHT.get(Cls(int(c)), 0.0) for c in cls])
         offs = np.arange(-self.radius_m, self.radius_m + 1e-9, self.step_m)
         gx, gy = np.meshgrid(offs, offs)
         offsets = np.stack([gx.ravel(), gy.ravel()], axis=1)
         scored = []
-        for yaw, centre in zip(yaws, centres):
+        for yaw, centre in zip(yaws, centres, strict=True):
             grid = offsets + centre
             scores = self._score_yaw(pts, bit, weight, yaw, grid, win, x0, y0, size)
-            best = np.argsort(scores)[-self.top_k:]
+            best = np.argsort(scores)[-self.top_k :]
             scored.extend(Candidate(np.array([*grid[i], yaw]), float(scores[i])) for i in best)
         return _distinct(sorted(scored, key=lambda c: -c.score), self.top_k)
 
@@ -104,13 +118,16 @@ class CoarseSearch:
         return pts, cls
 
 
-def _distinct(cands: list[Candidate], k: int, min_sep_m: float = 1.0,
-              min_sep_rad: float = math.radians(5)) -> list[Candidate]:
+def _distinct(
+    cands: list[Candidate], k: int, min_sep_m: float = 1.0, min_sep_rad: float = math.radians(5)
+) -> list[Candidate]:
     out: list[Candidate] = []
     for cand in cands:
-        if all(np.hypot(*(cand.pose[:2] - o.pose[:2])) > min_sep_m
-               or abs(math.remainder(cand.pose[2] - o.pose[2], 2 * math.pi)) > min_sep_rad
-               for o in out):
+        if all(
+            np.hypot(*(cand.pose[:2] - o.pose[:2])) > min_sep_m
+            or abs(math.remainder(cand.pose[2] - o.pose[2], 2 * math.pi)) > min_sep_rad
+            for o in out
+        ):
             out.append(cand)
         if len(out) == k:
             break

@@ -31,13 +31,32 @@ class Estimate:
 
 
 class Localizer:
-    def __init__(self, cache: TileCache, *, icp: Icp, ekf: PoseFilter, search: CoarseSearch,
-                 max_points: int = 700, road_fraction: float = 0.25, gnss_inflate: float = 1.5,
-                 gnss_min_sigma_m: float = 1.0, init_travel_m: float = 12.0, init_frames: int = 30,
-                 init_min_overlap: float = 0.5, init_sigma_m: float = 0.3,
-                 init_min_frames: int = 8, init_every: int = 4, init_margin: float = 0.05,
-                 reinit_bad_frames: int = 30, recent_frames: int = 8, recent_points: int = 80,
-                 use_prior: bool = False, track_gate_m: float = 1.5, seed: int = 0):
+    def __init__(
+        self,
+        cache: TileCache,
+        *,
+        icp: Icp,
+        ekf: PoseFilter,
+        search: CoarseSearch,
+        max_points: int = 700,
+        road_fraction: float = 0.25,
+        gnss_inflate: float = 1.5,
+        gnss_min_sigma_m: float = 1.0,
+        init_travel_m: float = 12.0,
+        init_frames: int = 30,
+        init_min_overlap: float = 0.5,
+        init_sigma_m: float = 0.3,
+        init_min_frames: int = 8,
+        init_every: int = 4,
+        init_margin: float = 0.05,
+        reinit_bad_frames: int = 30,
+        recent_frames: int = 8,
+        recent_points: int = 80,
+        use_prior: bool = False,
+        track_gate_m: float = 1.5,
+        calibration_rate: float = 0.0,
+        seed: int = 0,
+    ):
         self.cache, self.icp, self.ekf, self.search = cache, icp, ekf, search
         self.max_points, self.road_fraction = max_points, road_fraction
         self.gnss_inflate, self.gnss_min_sigma_m = gnss_inflate, gnss_min_sigma_m
@@ -49,6 +68,10 @@ class Localizer:
         self.recent_frames, self.recent_points = recent_frames, recent_points
         self.use_prior = use_prior
         self.track_gate_m = track_gate_m
+        # camera attitude offset (pitch, roll) learnt from the per-frame ICP attitude: the
+        # calibration error is constant, the vibration averages out
+        self.calibration = np.zeros(2)
+        self.calibration_rate = calibration_rate
         self.recent: deque = deque(maxlen=max(recent_frames, 1))  # tracking: multi-frame matching
         self._rng = np.random.default_rng(seed)
         self.t_ns: int | None = None
@@ -80,8 +103,13 @@ class Localizer:
             return False
         return self.ekf.update_position(xy_m, sigma)
 
-    def process_frame(self, t_ns: int, points_v: np.ndarray, classes: np.ndarray,
-                      jacobians: np.ndarray | None = None) -> Estimate:
+    def process_frame(
+        self,
+        t_ns: int,
+        points_v: np.ndarray,
+        classes: np.ndarray,
+        jacobians: np.ndarray | None = None,
+    ) -> Estimate:
         """Match one frame's semantic points (vehicle frame) to the map and fuse the result.
 
         jacobians: optional (N, 2, 2) point derivatives w.r.t. camera pitch and roll."""
@@ -91,17 +119,29 @@ class Localizer:
             diag = self._try_initialize()
             if not self.ekf.initialized:
                 return Estimate(t_ns, np.full(3, np.nan), np.eye(3) * 1e6, False, diag)
+        if jac is not None:  # the slowly learnt camera calibration offset (pitch, roll)
+            pts = pts + jac @ self.calibration[: jac.shape[2]]
         all_pts, all_cls, all_jac = self._with_recent(pts, cls, jac)
         prior = self.ekf.cov if self.use_prior else None
         gate = max(self.track_gate_m, 3.0 * self.ekf.position_sigma_m)
-        result = self.icp.register(all_pts, class_slots(all_cls), self.ekf.pose, self.cache,
-                                   all_jac, prior, gate_start_m=gate)
+        result = self.icp.register(
+            all_pts,
+            class_slots(all_cls),
+            self.ekf.pose,
+            self.cache,
+            all_jac,
+            prior,
+            gate_start_m=gate,
+        )
         self._remember(result, pts, cls, jac)
         if self.use_prior:
-            accepted = result is not None and self.ekf.update_posterior(result.pose,
-                                                                        result.information)
+            accepted = result is not None and self.ekf.update_posterior(
+                result.pose, result.information
+            )
         else:
             accepted = result is not None and self.ekf.update_pose(result.pose, result.cov)
+        if accepted and jac is not None and len(result.attitude):
+            self.calibration[: len(result.attitude)] += self.calibration_rate * result.attitude
         diag = self._frame_diag(result, accepted)
         self._watch_integrity(result, accepted)
         return Estimate(t_ns, self.ekf.pose, self.ekf.cov, self.ekf.ok, diag)
@@ -115,8 +155,14 @@ class Localizer:
         paint = np.flatnonzero(cls[keep] != Cls.ROAD)
         n_paint = min(len(paint), int(self.max_points * (1 - self.road_fraction)))
         n_road = min(len(road), self.max_points - n_paint)
-        idx = keep[np.concatenate([self._rng.choice(paint, n_paint, replace=False),
-                                   self._rng.choice(road, n_road, replace=False)]).astype(np.int64)]
+        idx = keep[
+            np.concatenate(
+                [
+                    self._rng.choice(paint, n_paint, replace=False),
+                    self._rng.choice(road, n_road, replace=False),
+                ]
+            ).astype(np.int64)
+        ]
         return pts[idx], cls[idx], None if jac is None else np.asarray(jac, float)[idx]
 
     def _with_recent(self, pts, cls, jac):
@@ -170,8 +216,11 @@ class Localizer:
         if runner is not None and runner[0] > best[0] - self.init_margin and not final:
             return {"state": "init_ambiguous", "overlap": best[0], "runner_up": runner[0]}
         self._start_filter(best[1])
-        return {"state": "initialized", "overlap": best[0],
-                "runner_up": None if runner is None else runner[0]}
+        return {
+            "state": "initialized",
+            "overlap": best[0],
+            "runner_up": None if runner is None else runner[0],
+        }
 
     def _start_filter(self, res: IcpResult) -> None:
         cov = res.cov.copy()
@@ -207,21 +256,36 @@ class Localizer:
         rels = [se2_between(o, self.odom) for o, _, _ in self.gnss]
 
         def centre_of_yaw(yaw):
-            out = [g + transform_points_2d(np.array([0.0, 0.0, yaw - r[2]]), r[None, :2])[0]
-                   for (_, g, _), r in zip(self.gnss, rels)]
+            out = [
+                g + transform_points_2d(np.array([0.0, 0.0, yaw - r[2]]), r[None, :2])[0]
+                for (_, g, _), r in zip(self.gnss, rels, strict=True)
+            ]
             return np.mean(out, axis=0)
 
         return centre_of_yaw, None
 
     def _frame_diag(self, res: IcpResult | None, accepted: bool) -> dict:
-        d = {"state": "tracking", "icp": res is not None, "accepted": bool(accepted),
-             "nis": round(self.ekf.last_nis, 3), "sigma_m": round(self.ekf.position_sigma_m, 4)}
+        d = {
+            "state": "tracking",
+            "icp": res is not None,
+            "accepted": bool(accepted),
+            "nis": round(self.ekf.last_nis, 3),
+            "sigma_m": round(self.ekf.position_sigma_m, 4),
+            "odom_scale": round(self.ekf.odometry_scale, 5),
+            "gyro_bias_dps": round(math.degrees(self.ekf.gyro_bias_rps), 4),
+            "calibration_deg": [round(math.degrees(c), 4) for c in self.calibration],
+        }
         if res is not None:
-            d.update(points=res.points, inliers=res.inliers, rmse_m=round(res.rmse_m, 4),
-                     degenerate=bool(res.degenerate), iterations=res.iterations,
-                     att=[round(float(a), 5) for a in res.attitude],
-                     icp_pose=[round(float(v), 4) for v in res.pose],
-                     icp_sigma=[round(float(np.sqrt(res.cov[k, k])), 4) for k in range(3)])
+            d.update(
+                points=res.points,
+                inliers=res.inliers,
+                rmse_m=round(res.rmse_m, 4),
+                degenerate=bool(res.degenerate),
+                iterations=res.iterations,
+                att=[round(float(a), 5) for a in res.attitude],
+                icp_pose=[round(float(v), 4) for v in res.pose],
+                icp_sigma=[round(float(np.sqrt(res.cov[k, k])), 4) for k in range(3)],
+            )
         return d
 
     def _watch_integrity(self, res: IcpResult | None, accepted: bool) -> None:
@@ -229,7 +293,9 @@ class Localizer:
         good = accepted or (res is not None and res.degenerate)
         self.bad_frames = 0 if good and self.ekf.ok else self.bad_frames + 1
         if self.bad_frames >= self.reinit_bad_frames:
-            logger.warning("localization diverged (%d bad frames): re-initializing", self.bad_frames)
+            logger.warning(
+                "localization diverged (%d bad frames): re-initializing", self.bad_frames
+            )
             self.ekf.initialized = False
             self.submap.clear()
             self.recent.clear()
@@ -263,18 +329,36 @@ def _align_2d(src: np.ndarray, dst: np.ndarray):
 
 def get_localizer(lc, cache: TileCache, seed: int = 0) -> Localizer:
     """LocalizerConfig -> Localizer with its ICP, EKF and coarse search."""
-    icp = Icp(iterations=lc.icp_iterations, gate_start_m=lc.icp_gate_start_m,
-              gate_end_m=lc.icp_gate_end_m, huber_m=lc.icp_huber_m, cov_scale=lc.icp_cov_scale,
-              attitude_sigma_rad=math.radians(lc.attitude_sigma_deg))
-    ekf = PoseFilter(speed_sigma_rel=lc.speed_sigma_rel,
-                     yaw_rate_sigma_rps=math.radians(lc.yaw_rate_sigma_dps),
-                     max_position_sigma_m=lc.max_position_sigma_m)
+    icp = Icp(
+        iterations=lc.icp_iterations,
+        gate_start_m=lc.icp_gate_start_m,
+        gate_end_m=lc.icp_gate_end_m,
+        huber_m=lc.icp_huber_m,
+        cov_scale=lc.icp_cov_scale,
+        attitude_sigma_rad=math.radians(lc.attitude_sigma_deg),
+    )
+    ekf = PoseFilter(
+        speed_sigma_rel=lc.speed_sigma_rel,
+        yaw_rate_sigma_rps=math.radians(lc.yaw_rate_sigma_dps),
+        max_position_sigma_m=lc.max_position_sigma_m,
+    )
     search = CoarseSearch(radius_m=lc.init_radius_m, seed=seed)
-    return Localizer(cache, icp=icp, ekf=ekf, search=search, max_points=lc.max_points,
-                     road_fraction=lc.road_fraction, gnss_inflate=lc.gnss_inflate,
-                     init_travel_m=lc.init_travel_m, init_frames=lc.init_frames,
-                     reinit_bad_frames=lc.reinit_bad_frames, recent_frames=lc.recent_frames,
-                     use_prior=lc.icp_prior, track_gate_m=lc.icp_track_gate_m, seed=seed)
+    return Localizer(
+        cache,
+        icp=icp,
+        ekf=ekf,
+        search=search,
+        max_points=lc.max_points,
+        road_fraction=lc.road_fraction,
+        gnss_inflate=lc.gnss_inflate,
+        init_travel_m=lc.init_travel_m,
+        init_frames=lc.init_frames,
+        reinit_bad_frames=lc.reinit_bad_frames,
+        recent_frames=lc.recent_frames,
+        use_prior=lc.icp_prior,
+        track_gate_m=lc.icp_track_gate_m,
+        seed=seed,
+    )
 
 
 def replay(localizer: Localizer, streams: dict, frame_points, on_estimate=None) -> list[Estimate]:
@@ -295,8 +379,9 @@ def replay(localizer: Localizer, streams: dict, frame_points, on_estimate=None) 
             rate = float(streams["imu_yaw_rate_rps"][i])
         elif kind == 2:
             if bool(streams["gnss_ok"][i]):
-                localizer.correct_gnss(int(t_ns), streams["gnss_xy_m"][i],
-                                       float(streams["gnss_sigma_m"][i]))
+                localizer.correct_gnss(
+                    int(t_ns), streams["gnss_xy_m"][i], float(streams["gnss_sigma_m"][i])
+                )
         else:
             out.append(localizer.process_frame(int(t_ns), *frame_points(i)))
             if on_estimate is not None:

@@ -138,7 +138,7 @@ class TileCache:
     # -- queries ----------------------------------------------------------------------------
 
     def nearest(self, points_xy_m: np.ndarray, slots: np.ndarray):
-        """World points (N, 2) and class slots (N,) -> (nearest map cell centres (N, 2), valid (N,)).
+        """World points (N, 2), class slots (N,) -> (nearest map cell centres (N, 2), valid (N,)).
 
         `slots` index MATCH_CLASSES (see `class_slots`); invalid where no tile or no such class."""
         pts = np.asarray(points_xy_m, dtype=np.float64)

@@ -23,7 +23,8 @@ def pose_errors(est: np.ndarray, true: np.ndarray) -> dict:
     dx, dy = est[:, 0] - true[:, 0], est[:, 1] - true[:, 1]
     c, s = np.cos(true[:, 2]), np.sin(true[:, 2])
     return {
-        "x_m": dx, "y_m": dy,
+        "x_m": dx,
+        "y_m": dy,
         "longitudinal_m": c * dx + s * dy,
         "lateral_m": -s * dx + c * dy,
         "yaw_deg": np.degrees(wrap_angle(est[:, 2] - true[:, 2])),
@@ -31,8 +32,9 @@ def pose_errors(est: np.ndarray, true: np.ndarray) -> dict:
     }
 
 
-def convergence_index(position_err_m: np.ndarray, t_s: np.ndarray, threshold_m: float,
-                      hold_s: float) -> int | None:
+def convergence_index(
+    position_err_m: np.ndarray, t_s: np.ndarray, threshold_m: float, hold_s: float
+) -> int | None:
     """First frame from which the error stays below threshold for hold_s (None: never)."""
     good = np.isfinite(position_err_m) & (position_err_m < threshold_m)
     n = len(good)
@@ -50,8 +52,14 @@ def convergence_index(position_err_m: np.ndarray, t_s: np.ndarray, threshold_m: 
     return None
 
 
-def localization_metrics(t_ns: np.ndarray, est: np.ndarray, true: np.ndarray, *,
-                         threshold_m: float = 0.5, hold_s: float = 1.0) -> dict:
+def localization_metrics(
+    t_ns: np.ndarray,
+    est: np.ndarray,
+    true: np.ndarray,
+    *,
+    threshold_m: float = 0.5,
+    hold_s: float = 1.0,
+) -> dict:
     """The report's localization section from per-frame estimates (NaN = none) and truth."""
     t_s = (np.asarray(t_ns, dtype=np.int64) - int(t_ns[0])) * 1e-9 if len(t_ns) else np.zeros(0)
     est = np.asarray(est, dtype=float)
@@ -61,8 +69,11 @@ def localization_metrics(t_ns: np.ndarray, est: np.ndarray, true: np.ndarray, *,
     err = pose_errors(est, true)
     pos = np.where(np.isfinite(err["position_m"]), err["position_m"], np.inf)
     k = convergence_index(pos, t_s, threshold_m, hold_s) if len(pos) else None
-    out = {"frames": int(len(t_s)), "convergence_s": None if k is None else float(t_s[k]),
-           "availability_0_5m": 0.0}
+    out = {
+        "frames": int(len(t_s)),
+        "convergence_s": None if k is None else float(t_s[k]),
+        "availability_0_5m": 0.0,
+    }
     after = slice(k if k is not None else len(t_s), None)
     sel = np.isfinite(pos[after])
     for name in ("lateral_m", "longitudinal_m", "x_m", "y_m", "yaw_deg"):
@@ -76,11 +87,18 @@ def localization_metrics(t_ns: np.ndarray, est: np.ndarray, true: np.ndarray, *,
 
 def summary_line(m: dict) -> str:
     """One line for logs: x/y/yaw mean and p90, availability, convergence."""
+
     def f(key, unit_scale=1.0):
         s = m[key]
-        return "n/a" if s["mean"] is None else f"{s['mean'] * unit_scale:.3f}/{s['p90'] * unit_scale:.3f}"
-    conv = m["convergence_s"]
-    return (f"x {f('x_m')} m, y {f('y_m')} m, yaw {f('yaw_deg')} deg (mean/p90), "
-            f"availability {m['availability_0_5m'] * 100:.2f} %, convergence "
-            f"{'never' if conv is None else f'{conv:.1f} s'}, frames {m['frames']}")
+        return (
+            "n/a"
+            if s["mean"] is None
+            else f"{s['mean'] * unit_scale:.3f}/{s['p90'] * unit_scale:.3f}"
+        )
 
+    conv = m["convergence_s"]
+    return (
+        f"x {f('x_m')} m, y {f('y_m')} m, yaw {f('yaw_deg')} deg (mean/p90), "
+        f"availability {m['availability_0_5m'] * 100:.2f} %, convergence "
+        f"{'never' if conv is None else f'{conv:.1f} s'}, frames {m['frames']}"
+    )

@@ -45,8 +45,7 @@ def localize_log(log: DriveLog, cfg, session, vehicle: str, out: Path) -> dict:
     """Localize every frame of a log; writes the outputs and returns the localization section."""
     lc = cfg.localizer
     cache = TileCache(capacity=lc.cache_tiles)
-    client = TileClient(session, cache, codec_name=lc.map_codec,
-                        timeout_s=cfg.bus.query_timeout_s)
+    client = TileClient(session, cache, codec_name=lc.map_codec, timeout_s=cfg.bus.query_timeout_s)
     publisher = session.declare_publisher(keys.pose(vehicle)) if lc.publish else None
     loc = get_localizer(lc, cache)
     frames = _FrameSource(log, cfg)
@@ -54,6 +53,7 @@ def localize_log(log: DriveLog, cfg, session, vehicle: str, out: Path) -> dict:
     timings = {"segment_ms": [], "frame_ms": [], "fetch_ms": []}
     diag_file = open(out / "diagnostics.jsonl", "w")
     try:
+
         def frame_points(i):
             t0 = time.perf_counter()
             client.poll_updates()
@@ -68,8 +68,17 @@ def localize_log(log: DriveLog, cfg, session, vehicle: str, out: Path) -> dict:
         def on_estimate(i, est):
             timings["frame_ms"].append((time.perf_counter() - timings["_t"]) * 1e3)
             if publisher is not None and np.all(np.isfinite(est.pose)):
-                publisher.put(codec.encode(Pose(vehicle, int(est.t_ns), *map(float, est.pose),
-                                                np.asarray(est.cov, float), bool(est.ok))))
+                publisher.put(
+                    codec.encode(
+                        Pose(
+                            vehicle,
+                            int(est.t_ns),
+                            *map(float, est.pose),
+                            np.asarray(est.cov, float),
+                            bool(est.ok),
+                        )
+                    )
+                )
             diag_file.write(json.dumps(_diag_row(i, est, streams), separators=(",", ":")) + "\n")
 
         estimates = replay(loc, streams, frame_points, on_estimate)
@@ -80,11 +89,18 @@ def localize_log(log: DriveLog, cfg, session, vehicle: str, out: Path) -> dict:
             publisher.undeclare()
     poses = np.array([e.pose for e in estimates]).reshape(-1, 3)
     write_tum(out / "trajectory.tum", streams["frame_t_ns"][: len(poses)], poses)
-    report = localization_metrics(streams["frame_t_ns"][: len(poses)], poses,
-                                  streams["frame_pose_true"][: len(poses)])
-    report.update(map_codec=lc.map_codec, segmenter=frames.segmenter_name, inits=loc.inits,
-                  tiles_fetched=client.fetched, tile_bytes=client.bytes,
-                  tile_updates=client.updates, per_frame_ms=_percentiles(timings))
+    report = localization_metrics(
+        streams["frame_t_ns"][: len(poses)], poses, streams["frame_pose_true"][: len(poses)]
+    )
+    report.update(
+        map_codec=lc.map_codec,
+        segmenter=frames.segmenter_name,
+        inits=loc.inits,
+        tiles_fetched=client.fetched,
+        tile_bytes=client.bytes,
+        tile_updates=client.updates,
+        per_frame_ms=_percentiles(timings),
+    )
     (out / "localization.json").write_text(json.dumps(report, indent=1))
     return report
 
@@ -100,14 +116,16 @@ class _FrameSource:
         self.stride = lc.ipm_stride
         self.estimate_attitude = lc.estimate_attitude
         self.roll = lc.attitude_roll
-        self.ipm = FramePoints(log.meta.camera, x_min_m=roi.x_min_m, length_m=roi.length_m,
-                               width_m=roi.width_m)
+        self.ipm = FramePoints(
+            log.meta.camera, x_min_m=roi.x_min_m, length_m=roi.length_m, width_m=roi.width_m
+        )
         if lc.segmenter == "truth":
             self.segmenter = get_segmenter("truth", seed=1)
         else:
             seg = cfg.segmentation
-            self.segmenter = get_segmenter("onnx", model_path=seg.model_path,
-                                           intra_op_threads=seg.intra_op_threads)
+            self.segmenter = get_segmenter(
+                "onnx", model_path=seg.model_path, intra_op_threads=seg.intra_op_threads
+            )
         self.segmenter_name = getattr(self.segmenter, "name", lc.segmenter)
 
     def points(self, i: int):
@@ -137,15 +155,21 @@ def _wanted_tiles(loc, streams, i: int, lc):
 
 def _diag_row(i: int, est, streams) -> dict:
     true = streams["frame_pose_true"][i]
-    row = {"i": int(i), "t_ns": int(est.t_ns), "ok": bool(est.ok),
-           "pose": [round(float(v), 4) for v in est.pose] if np.all(np.isfinite(est.pose)) else None,
-           "sigma_xy_m": [round(float(math.sqrt(max(est.cov[k, k], 0.0))), 4) for k in (0, 1)]}
+    row = {
+        "i": int(i),
+        "t_ns": int(est.t_ns),
+        "ok": bool(est.ok),
+        "pose": [round(float(v), 4) for v in est.pose] if np.all(np.isfinite(est.pose)) else None,
+        "sigma_xy_m": [round(float(math.sqrt(max(est.cov[k, k], 0.0))), 4) for k in (0, 1)],
+    }
     if row["pose"] is not None and np.all(np.isfinite(true)):
         dx, dy = est.pose[0] - true[0], est.pose[1] - true[1]
         c, s = math.cos(true[2]), math.sin(true[2])
         row["err_lon_m"] = round(c * dx + s * dy, 4)
         row["err_lat_m"] = round(-s * dx + c * dy, 4)
-        row["err_yaw_deg"] = round(math.degrees(math.remainder(est.pose[2] - true[2], 2 * math.pi)), 4)
+        row["err_yaw_deg"] = round(
+            math.degrees(math.remainder(est.pose[2] - true[2], 2 * math.pi)), 4
+        )
     row.update(est.diag)
     return row
 
@@ -153,7 +177,7 @@ def _diag_row(i: int, est, streams) -> dict:
 def write_tum(path: Path, t_ns: np.ndarray, poses: np.ndarray) -> None:
     """TUM trajectory (`timestamp x y z qx qy qz qw`, seconds), frames with an estimate only."""
     with open(path, "w") as f:
-        for t, (x, y, yaw) in zip(t_ns, poses):
+        for t, (x, y, yaw) in zip(t_ns, poses, strict=True):
             if not np.all(np.isfinite([x, y, yaw])):
                 continue
             w, qx, qy, qz = quat_wxyz_from_yaw(float(yaw))

@@ -19,8 +19,9 @@ from common.messages import Tile
 logger = logging.getLogger(__name__)
 
 
-def tiles_needed(x_m: float, y_m: float, heading_rad: float | None, *, radius_m: float,
-                 ahead_m: float) -> list[TileId]:
+def tiles_needed(
+    x_m: float, y_m: float, heading_rad: float | None, *, radius_m: float, ahead_m: float
+) -> list[TileId]:
     """Tiles within radius of the car, then those along the direction of travel (nearest first)."""
     out = tiles_around(x_m, y_m, radius_m)
     if heading_rad is not None and ahead_m > 0:
@@ -36,14 +37,24 @@ def decode_tile_message(msg: Tile) -> np.ndarray:
         return decode_tile(msg.data)
     if msg.codec == RAW_CODEC:
         return decode_raw(msg.data)
-    raise CodecError(f"tile {msg.tile}: unknown codec {msg.codec!r} (expected {CODEC} or {RAW_CODEC})")
+    raise CodecError(
+        f"tile {msg.tile}: unknown codec {msg.codec!r} (expected {CODEC} or {RAW_CODEC})"
+    )
 
 
 class TileClient:
-    """Fetches tiles by Zenoh `get` on roadmap/tile/<tx>/<ty> and follows roadmap/tile-update/*/*."""
+    """Fetches tiles by Zenoh `get` on tile keys; follows roadmap/tile-update/*/*."""
 
-    def __init__(self, session, cache, *, codec_name: str = "contour", timeout_s: float = 5.0,
-                 retry_missing_s: float = 5.0, follow_updates: bool = True):
+    def __init__(
+        self,
+        session,
+        cache,
+        *,
+        codec_name: str = "contour",
+        timeout_s: float = 5.0,
+        retry_missing_s: float = 5.0,
+        follow_updates: bool = True,
+    ):
         from common.bus import FifoChannel
 
         if codec_name not in ("contour", "raw"):
@@ -55,11 +66,14 @@ class TileClient:
         self.fetched = self.missing = self.updates = 0
         self.bytes = 0
         self.decode_ms: list[float] = []
-        self._sub = (session.declare_subscriber(keys.TILE_UPDATE_ALL, FifoChannel(256))
-                     if follow_updates else None)
+        self._sub = (
+            session.declare_subscriber(keys.TILE_UPDATE_ALL, FifoChannel(256))
+            if follow_updates
+            else None
+        )
 
     def ensure(self, tiles: list[TileId]) -> int:
-        """Fetch the tiles not cached yet (skipping recently missing ones); returns how many came."""
+        """Fetch the tiles not cached yet (skipping recently missing ones); returns how many."""
         now = time.monotonic()
         got = 0
         for tile in tiles:

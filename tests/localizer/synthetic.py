@@ -22,7 +22,9 @@ def straight_road(length_m=240.0, y_m=30.0, features=True, dashed=True) -> World
         m.append(Marking(Cls.LANE_LINE, _rect(x0, x1, yy - 0.075, yy + 0.075), "solid"))
     if dashed:
         for xs in np.arange(x0 + 2.0, x1 - 3.0, 9.0):
-            m.append(Marking(Cls.LANE_LINE, _rect(xs, xs + 3.0, y_m - 0.075, y_m + 0.075), "dashed"))
+            m.append(
+                Marking(Cls.LANE_LINE, _rect(xs, xs + 3.0, y_m - 0.075, y_m + 0.075), "dashed")
+            )
     else:
         m.append(Marking(Cls.LANE_LINE, _rect(x0, x1, y_m - 0.075, y_m + 0.075), "solid"))
     if features:
@@ -32,8 +34,17 @@ def straight_road(length_m=240.0, y_m=30.0, features=True, dashed=True) -> World
                 yy = y_m - 3.3 + k * 1.1
                 m.append(Marking(Cls.CROSSWALK, _rect(xs + 2.0, xs + 5.0, yy, yy + 0.5), "zebra"))
         for xs in np.arange(x0 + 20.0, x1 - 10.0, 37.0):
-            arrow = np.array([[0, -0.15], [3.0, -0.15], [3.0, -0.5], [4.2, 0], [3.0, 0.5],
-                              [3.0, 0.15], [0, 0.15]])
+            arrow = np.array(
+                [
+                    [0, -0.15],
+                    [3.0, -0.15],
+                    [3.0, -0.5],
+                    [4.2, 0],
+                    [3.0, 0.5],
+                    [3.0, 0.15],
+                    [0, 0.15],
+                ]
+            )
             m.append(Marking(Cls.GROUND_SIGN, arrow + [xs, y_m - 1.75], "arrow"))
             m.append(Marking(Cls.GROUND_SIGN, arrow * [-1, 1] + [xs + 20, y_m + 1.75], "arrow"))
     route = np.array([[x0, y_m - 1.75], [x1, y_m - 1.75]])
@@ -81,10 +92,21 @@ def fill_cache(cache, world: World):
     return cache
 
 
-def synthetic_drive(rng, *, duration_s=20.0, speed_mps=10.0, start=(12.0, 28.25, 0.0),
-                    frame_hz=10.0, imu_hz=100.0, gnss_hz=5.0, odom_scale=1.01,
-                    gyro_bias_rps=math.radians(0.05), gnss_bias_m=(2.0, -1.5),
-                    gnss_sigma_m=1.5, weave_m=0.6):
+def synthetic_drive(
+    rng,
+    *,
+    duration_s=20.0,
+    speed_mps=10.0,
+    start=(12.0, 28.25, 0.0),
+    frame_hz=10.0,
+    imu_hz=100.0,
+    gnss_hz=5.0,
+    odom_scale=1.01,
+    gyro_bias_rps=0.000873,  # 0.05 deg/s
+    gnss_bias_m=(2.0, -1.5),
+    gnss_sigma_m=1.5,
+    weave_m=0.6,
+):
     """A production drive along the straight road with a gentle lane weave: dict of streams
     (times in ns) as in a drive log, with the true pose at frames."""
     dt = 1.0 / imu_hz
@@ -103,13 +125,18 @@ def synthetic_drive(rng, *, duration_s=20.0, speed_mps=10.0, start=(12.0, 28.25,
     gidx = np.arange(0, n, int(imu_hz / gnss_hz))
     bias = np.asarray(gnss_bias_m) + np.cumsum(rng.normal(0, 0.02, (len(gidx), 2)), axis=0)
     return {
-        "frame_t_ns": t_ns[fidx], "frame_pose_true": truth[fidx],
-        "odom_t_ns": t_ns, "odom_speed_mps": speed * odom_scale + rng.normal(0, 0.02, n),
-        "imu_t_ns": t_ns, "imu_yaw_rate_rps": yaw_rate + gyro_bias_rps + rng.normal(0, 0.002, n),
+        "frame_t_ns": t_ns[fidx],
+        "frame_pose_true": truth[fidx],
+        "odom_t_ns": t_ns,
+        "odom_speed_mps": speed * odom_scale + rng.normal(0, 0.02, n),
+        "imu_t_ns": t_ns,
+        "imu_yaw_rate_rps": yaw_rate + gyro_bias_rps + rng.normal(0, 0.002, n),
         "gnss_t_ns": t_ns[gidx],
         "gnss_xy_m": truth[gidx, :2] + bias + rng.normal(0, gnss_sigma_m, (len(gidx), 2)),
-        "gnss_sigma_m": np.full(len(gidx), gnss_sigma_m), "gnss_ok": np.ones(len(gidx), bool),
-        "truth_t_ns": t_ns, "truth_pose": truth,
+        "gnss_sigma_m": np.full(len(gidx), gnss_sigma_m),
+        "gnss_ok": np.ones(len(gidx), bool),
+        "truth_t_ns": t_ns,
+        "truth_pose": truth,
     }
 
 
@@ -128,8 +155,13 @@ def write_log(root, cache, streams, camera, vehicle="prod-0"):
     from common.drivelog import DriveLogMeta, DriveLogWriter
 
     ipm = build_ipm_lookup(camera, x_min_m=3.0, length_m=12.0, width_m=8.0)
-    meta = DriveLogMeta(vehicle, f"{vehicle}-d0", "production",
-                        {"name": "straight", "origin_lat": 0.0, "origin_lon": 0.0}, camera)
+    meta = DriveLogMeta(
+        vehicle,
+        f"{vehicle}-d0",
+        "production",
+        {"name": "straight", "origin_lat": 0.0, "origin_lon": 0.0},
+        camera,
+    )
     w = DriveLogWriter(root, meta)
     for i, pose in enumerate(streams["frame_pose_true"]):
         w.write_frame(i, None, render_labels(cache, ipm, pose))

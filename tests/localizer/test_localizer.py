@@ -73,8 +73,10 @@ def test_coarse_search_finds_pose_from_5m_off(road_cache, rng):
     gnss = true[:2] + [3.5, -3.5]  # ~5 m off, heading unknown
     cands = CoarseSearch(seed=1).search(pts, cls, lambda _yaw: gnss, None, road_cache)
     icp = Icp()
-    best = min((icp.register(pts, class_slots(cls), c.pose, road_cache) for c in cands[:3]),
-               key=lambda r: np.hypot(*(r.pose[:2] - true[:2])) if r is not None else 1e9)
+    best = min(
+        (icp.register(pts, class_slots(cls), c.pose, road_cache) for c in cands[:3]),
+        key=lambda r: np.hypot(*(r.pose[:2] - true[:2])) if r is not None else 1e9,
+    )
     assert np.hypot(*(best.pose[:2] - true[:2])) < 0.2
     assert abs(best.pose[2] - true[2]) < math.radians(1.0)
     assert np.hypot(*(cands[0].pose[:2] - true[:2])) < 1.0  # the best coarse candidate is right
@@ -85,8 +87,9 @@ def test_whole_drive_converges_and_stays_available(road_cache, rng):
     loc = get_localizer(LocalizerConfig(), road_cache)
     frames = [frame_points(road_cache, p, rng) for p in streams["frame_pose_true"]]
     est = replay(loc, streams, lambda i: frames[i])
-    m = localization_metrics(streams["frame_t_ns"], np.array([e.pose for e in est]),
-                             streams["frame_pose_true"])
+    m = localization_metrics(
+        streams["frame_t_ns"], np.array([e.pose for e in est]), streams["frame_pose_true"]
+    )
     assert m["convergence_s"] is not None and m["convergence_s"] < 5.0
     assert m["availability_0_5m"] == 1.0
     assert m["y_m"]["p90"] < 0.05 and m["x_m"]["p90"] < 0.1 and m["yaw_deg"]["p90"] < 0.2

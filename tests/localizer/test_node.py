@@ -80,8 +80,12 @@ def test_tile_client_follows_updates(router, world_cache):
             time.sleep(0.3)
             newer = world_cache.labels((1, 0)).copy()
             newer[100:110, 100:200] = 3
-            server.put(keys.tile_update(1, 0), codec.encode(Tile((1, 0), 2, CODEC, encode_tile(newer))))
-            server.put(keys.tile_update(7, 7), codec.encode(Tile((7, 7), 1, CODEC, encode_tile(newer))))
+            server.put(
+                keys.tile_update(1, 0), codec.encode(Tile((1, 0), 2, CODEC, encode_tile(newer)))
+            )
+            server.put(
+                keys.tile_update(7, 7), codec.encode(Tile((7, 7), 1, CODEC, encode_tile(newer)))
+            )
             deadline = time.monotonic() + 5.0
             while cache.version((1, 0)) != 2 and time.monotonic() < deadline:
                 client.poll_updates()
@@ -101,8 +105,9 @@ def test_localize_command_end_to_end(router, world_cache, rng, tmp_path):
     poses = []
     with open_session(BusConfig(connect=[router])) as server:
         _serve(server, world_cache)
-        server.declare_subscriber(keys.pose("prod-0"),
-                                  lambda s: poses.append(codec.decode(s.payload.to_bytes(), Pose)))
+        server.declare_subscriber(
+            keys.pose("prod-0"), lambda s: poses.append(codec.decode(s.payload.to_bytes(), Pose))
+        )
         time.sleep(0.3)
         from services.localizer.node import main
 
