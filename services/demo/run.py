@@ -318,9 +318,10 @@ class DemoRun:
     def _observed(self, mosaic, log_jsons) -> np.ndarray:
         poses = [DriveLog(p.parent if p.name == "log.json" else p).streams["frame_pose_true"]
                  for p in log_jsons]
-        roi = self.cfg.roi
-        return ev.roi_footprint(mosaic, np.concatenate(poses), roi.x_min_m, roi.length_m,
-                                roi.width_m)
+        roi, length_m = self.cfg.roi, self.cfg.roi.length_m
+        if hasattr(self.cfg, "vehicle"):  # the vehicles vote only up to vehicle.max_range_m
+            length_m = min(length_m, self.cfg.vehicle.max_range_m - roi.x_min_m)
+        return ev.roi_footprint(mosaic, np.concatenate(poses), roi.x_min_m, length_m, roi.width_m)
 
     def _evaluate(self, stats: dict, loc: dict, logs: dict, update: dict | None) -> dict:
         contours = _require("common.contours", "the tile codec (common.contours)")
