@@ -61,6 +61,9 @@ class PoseFilter:
         scale_walk_per_s: float = 1e-3,
         gyro_bias_sigma0_rps: float = math.radians(0.1),
         gyro_bias_walk_rps: float = math.radians(0.002),
+        inflate_after: int = 3,
+        inflate_m: float = 0.15,
+        inflate_yaw_rad: float = math.radians(0.3),
     ):
         self.speed_sigma_rel = speed_sigma_rel
         self.speed_sigma_mps = speed_sigma_mps
@@ -69,6 +72,10 @@ class PoseFilter:
         self.max_position_sigma_m = max_position_sigma_m
         self.max_rejections = max_rejections
         self.scale_sigma0, self.scale_walk_per_s = scale_sigma0, scale_walk_per_s
+        self.inflate_after, self.inflate_m, self.inflate_yaw_rad = (
+            inflate_after, inflate_m, inflate_yaw_rad)
+        self.inflations = 0
+        self.pose_rejections = 0
         self.gyro_bias_sigma0, self.gyro_bias_walk = gyro_bias_sigma0_rps, gyro_bias_walk_rps
         self.ekf = _PlanarEKF(dim_x=5, dim_z=3)
         self.ekf.x = np.array([[0.0], [0.0], [0.0], [1.0], [0.0]])
@@ -200,6 +207,13 @@ class PoseFilter:
         H = np.eye(2, 5)
         return self._update(np.asarray(xy, float), H, np.eye(2) * sigma_m**2)
 
+    def _inflate(self) -> None:
+        """Pose measurements keep disagreeing with the filter: doubt the filter, not them."""
+        self.ekf.P[:3, :3] += np.diag(
+            [self.inflate_m**2, self.inflate_m**2, self.inflate_yaw_rad**2]
+        )
+        self.inflations += 1
+
     def innovation(self, z: np.ndarray, H: np.ndarray, R: np.ndarray):
         """(innovation, its covariance, squared Mahalanobis distance) of a linear measurement."""
         y = _pose_residual(z, H @ self.ekf.x.reshape(-1))
@@ -211,10 +225,15 @@ class PoseFilter:
             return False
         _, _, d2 = self.innovation(z, H, R)
         self.last_nis = d2
+        pose = len(z) == 3
         if d2 > self.chi2[len(z)]:
             self.rejections += 1
+            self.pose_rejections += pose
+            if pose and self.pose_rejections % self.inflate_after == 0:
+                self._inflate()
             return False
         self.rejections = 0
+        self.pose_rejections = 0 if pose else self.pose_rejections
         self.ekf.update(
             z.reshape(-1, 1),
             lambda _x: H,
