@@ -75,6 +75,10 @@ class DemoRun:
 
     def run(self) -> dict:
         self._prepare_out()
+        if self.d.segmenter == "onnx":  # fail now, not after the drives, if the model is missing
+            from common.segmentation import get_segmenter
+
+            get_segmenter("onnx")
         self.world = self.step("load world", self._load_world)
         logs = self.step("simulate drives", self._simulate)
         with Supervisor(self.out / "logs", config=self.out / "config.toml") as sup:
