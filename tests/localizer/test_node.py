@@ -123,3 +123,69 @@ def test_localize_command_end_to_end(router, world_cache, rng, tmp_path):
     rows = (tmp_path / "out" / "diagnostics.jsonl").read_text().splitlines()
     assert len(rows) == len(streams["frame_t_ns"])
     assert len(poses) > 40 and poses[-1].ok
+
+
+def test_tile_cache_fetches_from_a_real_merger_shard(router, tmp_path):
+    """`roadmap merger` in its own process: ingest one patch, then fetch and decode its tile."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from common.messages import GridPatch, IngestAck, IngestBatch
+
+    repo = Path(__file__).resolve().parents[2]
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "merger",
+            "--shard",
+            "0",
+            "--shards",
+            "1",
+            "--store",
+            str(tmp_path / "s0.sqlite"),
+            "--connect",
+            router,
+        ],
+        cwd=repo,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    rows, cols = np.meshgrid(np.arange(200, 260), np.arange(100, 102), indexing="ij")
+    cells = np.unique((rows * 512 + cols).ravel()).astype(np.uint32)
+    votes = np.zeros((len(cells), 6), np.uint16)
+    votes[:, 2] = 5
+    patch = GridPatch("veh-a/0", "veh-a", (1, 0), cells, votes, 1, 2, "veh-a-d0")
+    try:
+        with open_session(BusConfig(connect=[router])) as session:
+            acked = False
+            deadline = time.monotonic() + 30.0
+            while not acked and time.monotonic() < deadline:
+                for reply in session.get(
+                    keys.ingest(0), payload=codec.encode(IngestBatch([patch])), timeout=2.0
+                ):
+                    if reply.ok is not None:
+                        ack = codec.decode(reply.ok.payload.to_bytes(), IngestAck)
+                        acked = ack.error is None
+                if not acked:
+                    time.sleep(0.3)
+            assert acked, "merger never acked"
+            cache = TileCache(capacity=4)
+            client = TileClient(session, cache, timeout_s=3.0, retry_missing_s=0.0)
+            try:
+                while not client.fetch((1, 0)) and time.monotonic() < deadline:
+                    time.sleep(0.2)
+                labels = cache.labels((1, 0))
+                assert labels is not None
+                assert (labels[200:260, 100:102] == 2).mean() > 0.9
+                assert (labels == 2).sum() < 3 * len(cells)
+            finally:
+                client.close()
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
