@@ -1,13 +1,18 @@
 """`roadmap bench`: run every stage's benchmark (bench/bench_*.py, each `run(quick) -> dict`)
 and write OUT/bench.json in the shape of DESIGN.md (cores, python, onnxruntime; stages; merge;
-scaling; mapper). A benchmark that is missing or fails is recorded with its error."""
+scaling; mapper). A benchmark that is missing or fails is recorded with its error. Each runs in
+its own process group (`python -m services.demo.bench NAME`), killed afterwards, so a crash or a
+process a benchmark leaves behind cannot outlive it."""
 
 import importlib.util
 import json
 import logging
 import os
 import platform
+import signal
+import subprocess
 import sys
+import tempfile
 import time
 import traceback
 from pathlib import Path
@@ -30,7 +35,7 @@ def load_bench(name: str, bench_dir: Path = BENCH_DIR):
     return module
 
 
-def run_one(name: str, quick: bool, bench_dir: Path = BENCH_DIR) -> dict:
+def run_in_process(name: str, quick: bool, bench_dir: Path = BENCH_DIR) -> dict:
     """{"ok": True, "result": {...}, "wall_s"} or {"ok": False, "error": "..."}."""
     t = time.monotonic()
     try:
@@ -43,6 +48,33 @@ def run_one(name: str, quick: bool, bench_dir: Path = BENCH_DIR) -> dict:
         return {"ok": False, "error": f"{type(exc).__name__}: {exc}",
                 "traceback": traceback.format_exc()[-2000:],
                 "wall_s": round(time.monotonic() - t, 2)}
+
+
+def run_one(name: str, quick: bool, bench_dir: Path = BENCH_DIR,
+            timeout_s: float = 1800.0) -> dict:
+    """Run one benchmark in a child process group; whatever it leaves running is killed."""
+    t = time.monotonic()
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "result.json"
+        argv = [sys.executable, "-m", "services.demo.bench", name, "--dir", str(bench_dir),
+                "--json", str(out)] + (["--quick"] if quick else [])
+        proc = subprocess.Popen(argv, cwd=BENCH_DIR.parent, start_new_session=True,
+                                stdin=subprocess.DEVNULL)
+        try:
+            proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            logger.warning("bench_%s: no result after %.0f s", name, timeout_s)
+        finally:
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)  # the benchmark and anything it left behind
+            except ProcessLookupError:
+                pass
+            proc.wait()
+        try:
+            return json.loads(out.read_text())
+        except (OSError, ValueError):
+            return {"ok": False, "error": f"benchmark process ended with {proc.returncode} "
+                    "and wrote no result", "wall_s": round(time.monotonic() - t, 2)}
 
 
 def merge_results(runs: dict[str, dict]) -> dict:
@@ -96,13 +128,41 @@ def run_all(quick: bool, names=BENCHMARKS, bench_dir: Path = BENCH_DIR) -> dict:
             "raw": {n: r.get("result") for n, r in runs.items()}}
 
 
+def _jsonable(obj):
+    """numpy scalars and arrays as plain numbers and lists; anything else as text."""
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    return str(obj)
+
+
+def _child_main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    from common.log import configure_logging
+
+    p = argparse.ArgumentParser(prog="python -m services.demo.bench")
+    p.add_argument("name")
+    p.add_argument("--dir", required=True)
+    p.add_argument("--json", required=True)
+    p.add_argument("--quick", action="store_true")
+    args = p.parse_args(argv)
+    configure_logging("INFO")
+    result = run_in_process(args.name, args.quick, Path(args.dir))
+    Path(args.json).write_text(json.dumps(result, default=_jsonable))
+    return 0
+
+
 def bench_command(args, cfg) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     report = run_all(args.quick)
-    (out / "bench.json").write_text(json.dumps(report, indent=1, default=str))
+    (out / "bench.json").write_text(json.dumps(report, indent=1, default=_jsonable))
     failed = [n for n, r in report["benchmarks"].items() if not r["ok"]]
     sys.stdout.write(f"bench: {len(BENCHMARKS) - len(failed)}/{len(BENCHMARKS)} benchmarks ran"
                      + (f" (failed: {', '.join(failed)})" if failed else "")
                      + f"; wrote {out / 'bench.json'}\n")
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_child_main())

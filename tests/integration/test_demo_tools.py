@@ -56,6 +56,24 @@ def test_bench_records_missing_and_failing_benchmarks(tmp_path):
     assert out["cores"] == os.cpu_count()
 
 
+def test_bench_kills_what_a_benchmark_leaves_running(tmp_path):
+    pidfile = tmp_path / "pid"
+    (tmp_path / "bench_leak.py").write_text(
+        "import subprocess, numpy as np\n"
+        "def run(quick):\n"
+        "    p = subprocess.Popen(['sleep', '300'])\n"
+        f"    open({str(pidfile)!r}, 'w').write(str(p.pid))\n"
+        "    return {'stages': {'leak': {'p50_ms': np.float32(2.0)}}}\n")
+    out = bench.run_all(True, names=("leak",), bench_dir=tmp_path)
+    assert out["stages"]["leak"]["p50_ms"] == 2.0
+    pid = int(pidfile.read_text())
+    for _ in range(50):
+        if _gone(pid):
+            break
+        time.sleep(0.1)
+    assert _gone(pid), "the benchmark's child outlived it"
+
+
 def test_map_digest_depends_on_content_not_order():
     a, b = np.zeros((512, 512), np.uint8), np.ones((512, 512), np.uint8)
     assert ev.map_digest([(0, 0), (1, -1)], [a, b]) == ev.map_digest([(1, -1), (0, 0)], [b, a])
