@@ -441,12 +441,15 @@ class DemoRun:
                 "router": self.router_endpoint}
 
     def _vehicle_stage_ms(self) -> dict:
-        acc: dict[str, list[float]] = {}
+        """Per-frame stage times of the mapping vehicles: {stage: {p50, p95}} averaged over them."""
+        acc: dict[str, dict[str, list[float]]] = {}
         for s in self.vehicle_summaries:
-            for k, v in (s.get("per_stage_ms") or {}).items():
-                if isinstance(v, int | float):
-                    acc.setdefault(k, []).append(float(v))
-        return {k: float(np.mean(v)) for k, v in acc.items()}
+            for stage, v in (s.get("per_stage_ms") or {}).items():
+                items = v.items() if isinstance(v, dict) else [("mean", v)]
+                for k, x in items:
+                    if isinstance(x, int | float):
+                        acc.setdefault(stage, {}).setdefault(k, []).append(float(x))
+        return {st: {k: round(float(np.mean(v)), 3) for k, v in d.items()} for st, d in acc.items()}
 
     def _figures(self, mosaic, raw, decoded, truth, prod_log: Path) -> None:
         figures.save_map(raw, self.out / "map.png")
