@@ -189,6 +189,92 @@ def sim_accuracy(
     return json.loads((out / "accuracy" / "localization.json").read_text())
 
 
+def fleet_accuracy(
+    out: Path,
+    *,
+    world: str = "town",
+    km: float = 0.5,
+    vehicles: int = 4,
+    seed: int = 1,
+    codecs: tuple = ("contour", "raw"),
+) -> dict:
+    """The whole chain as processes: router, merger shard, `roadmap vehicle` per mapping drive
+    (ground-truth segmenter), then `roadmap localize` on a production drive per map codec."""
+    import subprocess
+
+    from common.bus import free_tcp_port, wait_for_tcp
+    from services.sim.simulate import simulate_drives
+    from services.sim.worlds import load_world
+
+    w = load_world(world, 0)
+    maps = simulate_drives(
+        w,
+        out / "map",
+        vehicles=vehicles,
+        profile="mapping",
+        images=False,
+        max_km=km,
+        seed=seed + 100,
+    )
+    prod = simulate_drives(
+        w, out / "prod", profile="production", images=False, max_km=km, seed=seed
+    )
+    port = free_tcp_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    cli = [sys.executable, "-m", "services.cli"]
+    one = ["--connect", ep, "--set", "grid.shards=1"]
+    router = subprocess.Popen([*cli, "router", "--listen", ep], cwd=REPO)
+    wait_for_tcp("127.0.0.1", port, 15.0)
+    merger = subprocess.Popen(
+        [*cli, "merger", "--shard", "0", "--shards", "1", "--store", str(out / "s0.sqlite"), *one],
+        cwd=REPO,
+    )
+    results = {}
+    try:
+        for log in maps:
+            subprocess.run(
+                [
+                    *cli,
+                    "vehicle",
+                    "--log",
+                    str(log),
+                    "--segmenter",
+                    "truth",
+                    "--state",
+                    str(out / f"state-{log.name}"),
+                    *one,
+                ],
+                cwd=REPO,
+                check=True,
+                timeout=1800,
+            )
+        time.sleep(3.0)  # merger debounce: the last tiles are recompressed
+        for name in codecs:
+            dest = out / f"localize-{name}"
+            subprocess.run(
+                [
+                    *cli,
+                    "localize",
+                    "--log",
+                    str(prod[0]),
+                    "--out",
+                    str(dest),
+                    *one,
+                    "--set",
+                    f'localizer.map_codec="{name}"',
+                ],
+                cwd=REPO,
+                check=True,
+                timeout=1800,
+            )
+            results[name] = json.loads((dest / "localization.json").read_text())
+    finally:
+        for proc in (merger, router):
+            proc.terminate()
+            proc.wait(10)
+    return results
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="out")
@@ -198,8 +284,24 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--codec", choices=["contour", "raw"], default="contour")
     parser.add_argument("--set", action="append", default=[], help="localizer.KEY=VALUE")
+    parser.add_argument(
+        "--fleet",
+        type=int,
+        default=0,
+        help="with --world: map with this many mapping vehicles first (real "
+        "merger and vehicle processes), then localize against that map",
+    )
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO)
+    if args.world and args.fleet:
+        from services.localizer.metrics import summary_line
+
+        res = fleet_accuracy(
+            Path(args.out), world=args.world, km=args.km, vehicles=args.fleet, seed=args.seed
+        )
+        for name, acc in res.items():
+            sys.stdout.write(f"{name}: {summary_line(acc)}\n")
+        return 0
     if args.world:
         from services.localizer.metrics import summary_line
 

@@ -15,6 +15,7 @@ from filterpy.kalman import ExtendedKalmanFilter
 from common.geometry import wrap_angle
 
 CHI2_99 = {2: 9.21, 3: 11.34}
+SCALE_LIMIT = 0.05  # wheel odometry scale error beyond +-5 % is a filter fault, not a car
 
 
 def _pose_residual(a, b):
@@ -73,9 +74,13 @@ class PoseFilter:
         self.max_rejections = max_rejections
         self.scale_sigma0, self.scale_walk_per_s = scale_sigma0, scale_walk_per_s
         self.inflate_after, self.inflate_m, self.inflate_yaw_rad = (
-            inflate_after, inflate_m, inflate_yaw_rad)
+            inflate_after,
+            inflate_m,
+            inflate_yaw_rad,
+        )
         self.inflations = 0
         self.pose_rejections = 0
+        self.gnss_rejections = 0
         self.gyro_bias_sigma0, self.gyro_bias_walk = gyro_bias_sigma0_rps, gyro_bias_walk_rps
         self.ekf = _PlanarEKF(dim_x=5, dim_z=3)
         self.ekf.x = np.array([[0.0], [0.0], [0.0], [1.0], [0.0]])
@@ -229,11 +234,13 @@ class PoseFilter:
         if d2 > self.chi2[len(z)]:
             self.rejections += 1
             self.pose_rejections += pose
+            self.gnss_rejections += not pose
             if pose and self.pose_rejections % self.inflate_after == 0:
                 self._inflate()
             return False
         self.rejections = 0
         self.pose_rejections = 0 if pose else self.pose_rejections
+        self.gnss_rejections = self.gnss_rejections if pose else 0
         self.ekf.update(
             z.reshape(-1, 1),
             lambda _x: H,
@@ -242,4 +249,5 @@ class PoseFilter:
             residual=lambda a, b: _pose_residual(a.reshape(-1), b.reshape(-1)).reshape(-1, 1),
         )
         self.ekf.x[2, 0] = float(wrap_angle(self.ekf.x[2, 0]))
+        self.ekf.x[3, 0] = min(max(self.ekf.x[3, 0], 1.0 - SCALE_LIMIT), 1.0 + SCALE_LIMIT)
         return True

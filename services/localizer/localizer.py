@@ -55,6 +55,7 @@ class Localizer:
         use_prior: bool = False,
         track_gate_m: float = 1.5,
         calibration_rate: float = 0.0,
+        reinit_gnss_rejections: int = 5,
         seed: int = 0,
     ):
         self.cache, self.icp, self.ekf, self.search = cache, icp, ekf, search
@@ -72,6 +73,7 @@ class Localizer:
         # calibration error is constant, the vibration averages out
         self.calibration = np.zeros(2)
         self.calibration_rate = calibration_rate
+        self.reinit_gnss_rejections = reinit_gnss_rejections
         self.recent: deque = deque(maxlen=max(recent_frames, 1))  # tracking: multi-frame matching
         self._rng = np.random.default_rng(seed)
         self.t_ns: int | None = None
@@ -101,7 +103,10 @@ class Localizer:
         self.gnss.append((self.odom.copy(), np.asarray(xy_m, float), sigma))
         if not self.ekf.initialized:
             return False
-        return self.ekf.update_position(xy_m, sigma)
+        accepted = self.ekf.update_position(xy_m, sigma)
+        if self.ekf.gnss_rejections >= self.reinit_gnss_rejections:
+            self._reinitialize("GNSS keeps disagreeing")
+        return accepted
 
     def process_frame(
         self,
@@ -293,13 +298,15 @@ class Localizer:
         good = accepted or (res is not None and res.degenerate)
         self.bad_frames = 0 if good and self.ekf.ok else self.bad_frames + 1
         if self.bad_frames >= self.reinit_bad_frames:
-            logger.warning(
-                "localization diverged (%d bad frames): re-initializing", self.bad_frames
-            )
-            self.ekf.initialized = False
-            self.submap.clear()
-            self.recent.clear()
-            self.travel_m = 0.0
+            self._reinitialize(f"{self.bad_frames} bad frames")
+
+    def _reinitialize(self, why: str) -> None:
+        logger.warning("localization diverged (%s): re-initializing", why)
+        self.ekf.initialized = False
+        self.ekf.gnss_rejections = self.ekf.pose_rejections = 0
+        self.submap.clear()
+        self.recent.clear()
+        self.travel_m = 0.0
 
 
 def _runner_up(ranked):
