@@ -381,18 +381,19 @@ class DemoRun:
 
         seg = get_segmenter(self.d.segmenter)
         log = DriveLog(log_path)
-        inter, union, ms = np.zeros(6), np.zeros(6), []
+        inter, union, n_true, ms = np.zeros(6), np.zeros(6), np.zeros(6), []
         for i in np.linspace(0, len(log) - 1, min(n_frames, len(log))).astype(int):
             truth, image = log.labels(int(i)), log.image(int(i))
             t = time.perf_counter()
             pred = seg.segment(image, truth)
             ms.append((time.perf_counter() - t) * 1000.0)
             for c in range(2, 6):
+                n_true[c] += np.sum(truth == c)
                 inter[c] += np.sum((pred == c) & (truth == c))
                 union[c] += np.sum((pred == c) | (truth == c))
         names = {2: "lane_line", 3: "stop_line", 4: "crosswalk", 5: "ground_sign"}
         return {"model": getattr(seg, "name", self.d.segmenter),
-                "iou": {n: (float(inter[c] / union[c]) if union[c] else None)
+                "iou": {n: (float(inter[c] / union[c]) if n_true[c] else None)
                         for c, n in names.items()},
                 "ms_p50": float(np.percentile(ms, 50)) if ms else None,
                 "ms_p95": float(np.percentile(ms, 95)) if ms else None,
