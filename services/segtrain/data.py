@@ -35,7 +35,7 @@ def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
                  max_frames: int = 6000, cache_dir: Path | None = None):
     """(frames (N, H, W, 3) uint8, labels (N, H, W) uint8) from procedural towns; cached by seed."""
     cache_dir = cache_dir or Path(tempfile.gettempdir()) / "roadmap-segtrain"
-    cache = cache_dir / f"towns-s{seed}-{input_size[0]}x{input_size[1]}-{int(budget_s)}s.npz"
+    cache = cache_dir / f"towns-v2-s{seed}-{input_size[0]}x{input_size[1]}.npz"
     if cache.is_file():
         logger.info("training frames from cache %s", cache)
         with np.load(cache) as z:
@@ -75,7 +75,8 @@ def _sim_towns(seed, input_size, budget_s, max_frames):
     frames, labels = [], []
     k = 0
     while time.perf_counter() - t0 < budget_s and len(frames) < max_frames:
-        world = load_world(f"town:{rng.uniform(0.6, 1.5):.2f}", 20_000 * (seed + 1) + k)
+        world = thinned(load_world(f"town:{rng.uniform(0.6, 1.5):.2f}", 20_000 * (seed + 1) + k),
+                        rng)
         for _ in range(4):
             camera = random_camera(rng)
             renderer = FrameRenderer(world, camera, seed=int(rng.integers(2**31)))
@@ -107,6 +108,19 @@ def random_cars(pose, rng) -> list:
     return cars
 
 
+def thinned(world, rng):
+    """The world with a random share of its paint removed (labels and looks alike), so that road
+    edges without edge lines, and lanes without some markings, occur as in real maps."""
+    import dataclasses
+
+    from common.classes import Cls
+
+    p_line, p_other = rng.uniform(0.15, 0.6), rng.uniform(0.0, 0.3)
+    keep = [m for m in world.markings
+            if m.cls == Cls.ROAD or rng.random() >= (p_line if m.cls == Cls.LANE_LINE else p_other)]
+    return dataclasses.replace(world, markings=keep)
+
+
 def _synth_towns(seed, input_size, budget_s, max_frames):
     from services.segtrain.synth import render_town_frames
     from services.sim.worlds import load_world
@@ -116,7 +130,8 @@ def _synth_towns(seed, input_size, budget_s, max_frames):
     frames, labels = [], []
     k = 0
     while time.perf_counter() - t0 < budget_s and len(frames) < max_frames:
-        world = load_world(f"town:{rng.uniform(0.6, 1.5):.2f}", 10_000 * (seed + 1) + k)
+        world = thinned(load_world(f"town:{rng.uniform(0.6, 1.5):.2f}", 10_000 * (seed + 1) + k),
+                        rng)
         # supersample 1: the 2x area resize to the model's input size anti-aliases
         for rgb, lab in render_town_frames(world, 5, 8, rng, supersample=1):
             frames.append(resize_image(rgb, input_size))

@@ -93,6 +93,7 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float) ->
     val_iou = _validate(model, x_all[:n_val], y_all[:n_val])
     logger.info("validation IoU (procedural towns, held out): %s", val_iou)
     model_path = out / "roadseg.onnx"
+    torch.save(model.state_dict(), out / "roadseg.pt")  # for fine-tuning; not packaged
     export_onnx(model, model_path, seed=seed)
     max_diff, agree = verify_onnx(model, model_path, x_all[:4])
     return {
