@@ -42,7 +42,7 @@ def heldout_worlds() -> list[tuple[str, str]]:
     osm = SHARED / "lanelet2-karlsruhe" / "mapping_example.osm"
     if osm.is_file():
         out.append(("karlsruhe", f"lanelet2:{osm}"))
-    for log in sorted((SHARED / "av2").glob("*-*-*-*-*")):
+    for log in sorted(p for p in (SHARED / "av2").glob("*-*-*-*-*") if p.is_dir()):
         out.append((f"av2-{log.name[:8]}", f"av2:{log}"))
     return out
 
