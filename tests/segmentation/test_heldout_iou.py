@@ -5,7 +5,7 @@ import pytest
 
 from common.segmentation import DEFAULT_MODEL, get_segmenter
 
-FLOORS = {"road": 0.85, "lane_line": 0.45, "crosswalk": 0.40, "stop_line": 0.30}
+FLOORS = {"road": 0.80, "lane_line": 0.15, "crosswalk": 0.50, "stop_line": 0.30}
 
 
 @pytest.mark.shared_data
