@@ -40,6 +40,7 @@ def train_command(args, cfg) -> int:
     train_s = max(minutes * 60.0 - render_s - 60.0, 60.0)
     result = train_and_export(frames, labels, out, seed=args.seed, train_s=train_s)
     result["render_s"] = round(render_s, 1)
+    result["minutes"] = minutes
     result["total_s"] = round(time.perf_counter() - t_start, 1)
     (out / "train_log.json").write_text(json.dumps(result, indent=2))
     (out / "MODEL_CARD.md").write_text(model_card(result))
@@ -236,7 +237,7 @@ def model_card(result: dict) -> str:
   crosswalks or signs), with camera height 1.25-1.75 m, pitch 1.5-7 deg, roll/yaw jitter,
   focal length +-15 %, principal point and distortion jitter. Training-time augmentation:
   brightness, contrast, colour cast, gamma, blur, noise, horizontal flips, random crops.
-- **Training**: `roadmap train-seg --out DIR --seed {result["seed"]} --minutes 45`
+- **Training**: `roadmap train-seg --out DIR --seed {result["seed"]} --minutes {result.get("minutes", 45):g}`
   (`pip install .[train]`), AdamW, cosine schedule, class-weighted cross-entropy
   (weights {result["class_weights"]}), 2 CPU threads; {result["steps"]} steps in
   {result["train_s"] / 60:.1f} min after {result.get("render_s", 0) / 60:.1f} min of rendering.
