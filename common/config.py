@@ -148,7 +148,8 @@ class VehicleConfig:
 class MergerConfig:
     """Tile merger shard (services/merger): evidence rule, debounce, durability."""
 
-    window_traversals: int = 5  # ballots of the newest traversals per cell (repaint in 3)
+    window_traversals: int = 3  # ballots of the newest observing traversals per cell (repaint in 2)
+    footprint_cells: int = 9  # a traversal's unvoted cells inside its closed footprint vote none
     min_votes: int = 2  # votes behind a label, else unknown
     debounce_s: float = 0.5  # recompress / publish changed tiles at most this often
     max_batch_patches: int = 4096

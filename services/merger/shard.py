@@ -6,20 +6,34 @@ numpy. TileCodecCache keeps each tile's compressed form and a version that grows
 No I/O, no clocks: the node decides when to flush (debounce) and what to persist.
 
 Evidence rule (DESIGN.md: Map updating), per cell:
-  1. Each traversal (drive) that observed the cell casts ONE ballot: the class with the most of its
-     votes in that cell (ties go to the higher class: paint over road). Patches of one traversal
-     are summed first, so a car that idles or passes twice still votes once.
-  2. Only the ballots of the WINDOW (5) most recent traversals that observed the cell count.
-     Traversals are ordered by their own time in the tile (the earliest t_first_ns of their patches
-     there), ties by traversal id: never by arrival.
-  3. The label is the class with the most ballots in the window; ties go to the class whose
-     ballots carry more votes, then to the lower class. A label needs its ballots to carry at
-     least MIN_VOTES votes, else the cell is unknown (0).
-Consequences: after any number (50) of traversals of old paint, a repaint wins as soon as 3 of
-the last 5 traversals saw it (3 traversals); one noisy traversal is 1 ballot against >= 2 and
-never flips a cell that 2 or more traversals agree on; a map of one traversal is the paper's
-plain vote argmax (and of two, ties settled by the votes behind each ballot). Everything is integer arithmetic over the set of applied patches, so the
-map (and its digest) is independent of arrival order, crashes and replays. Memory grows with the
+  1. Each traversal (drive) that OBSERVED the cell casts ONE ballot. Where it has votes, the
+     ballot is the class with the most of its votes there (ties go to the higher class: paint
+     over road); patches of one traversal are summed first, so a car that idles or passes twice
+     still votes once. Vehicles send votes only for labelled pixels (road and paint), never for
+     ground they saw as nothing (class 0: islands, verges, hatched areas), so the shard
+     reconstructs a traversal's footprint: its voted cells in the tile, closed (dilate, then
+     erode) with a FOOTPRINT_CELLS square (0.9 m). A cell inside that
+     footprint without votes of the traversal lay between cells it saw, so it was in view and
+     seen as nothing: it casts a "none" ballot (class 0, no votes behind it). Without this,
+     paint removed from ground that is now nothing would never get a ballot against it and
+     would stay in the map for ever.
+  2. Only the ballots of the WINDOW (3) most recent traversals that observed the cell count.
+     Traversals are ordered by their own time in the tile (the earliest t_first_ns of their
+     patches there), ties by traversal id: never by arrival.
+  3. The label: paint (its class with the most ballots in the window; ties go to the class
+     whose ballots carry more votes, then to the lower class) wins when it has more ballots than
+     road and none together (ties again to more votes, then to the ground); otherwise road or
+     none, whichever has more ballots (ties to more votes: road). Pooling the ground means that
+     road and none ballots, both "no paint here", never split the vote against old paint. A
+     label needs its ballots to carry at least MIN_VOTES votes, else the cell is unknown (0).
+Consequences: after any number (50) of traversals of the old paint, a repaint wins as soon as 2
+of the last 3 traversals that saw the cell saw the new state (road, other paint or nothing): the
+map follows within 2 traversals that pass the cell, within 3 when one of them misses it. One
+noisy traversal is 1 ballot against the 2 before it and never flips a cell they agree on (two
+noisy traversals in a row can: the price of following in 2). A map of one traversal is the
+paper's plain vote argmax (of two, ties go to the votes behind each ballot). Everything is
+integer arithmetic and a deterministic morphology over the set of applied patches, so the map
+(and its digest) is independent of arrival order, crashes and replays. Memory grows with the
 stored traversals of a tile (compaction of traversals outside every cell's window is future work).
 """
 
@@ -27,6 +41,7 @@ import hashlib
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from common.classes import NUM_CLASSES
@@ -35,8 +50,9 @@ from common.errors import ConfigError, TileError
 from common.grid import CELLS_PER_TILE, TILE_CELLS
 from common.messages import ACCEPTED, DUPLICATE, GridPatch
 
-WINDOW_TRAVERSALS = 5
+WINDOW_TRAVERSALS = 3
 MIN_VOTES = 2
+FOOTPRINT_CELLS = 9  # closing square of a traversal's voted cells (module docstring, 1.)
 VOTE_CAP = 1 << 24  # per traversal and cell: window sums (window < 256) stay below 2^32
 BALLOT = np.uint64(1 << 32)
 
@@ -50,19 +66,28 @@ class _Traversal:
     t_first_ns: int
     pieces: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
     _ballots: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    _footprint_cells: int = 0
 
     def add(self, cells: np.ndarray, votes: np.ndarray, t_first_ns: int) -> None:
         self.pieces.append((cells, votes))
         self.t_first_ns = min(self.t_first_ns, t_first_ns)
         self._ballots = None
 
-    def ballots(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(cells, ballot class, votes behind the ballot) per observed cell, cells unique."""
-        if self._ballots is None:
+    def ballots(self, footprint_cells: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(cells, ballot class, votes behind the ballot) per observed cell, cells unique: the
+        voted cells, then the unvoted cells of the footprint with none ballots (class 0, 0)."""
+        if self._ballots is None or self._footprint_cells != footprint_cells:
             cells, votes = self._summed()
             ballot, weight = _ballot(votes[:, c] for c in range(NUM_CLASSES))
             seen = weight > 0  # an all-zero row is no observation
-            self._ballots = (cells[seen], ballot[seen], weight[seen])
+            cells, ballot, weight = cells[seen], ballot[seen], weight[seen]
+            none = _unvoted_footprint(cells, footprint_cells)
+            self._ballots = (
+                np.concatenate([cells, none]),
+                np.concatenate([ballot, np.zeros(len(none), np.uint8)]),
+                np.concatenate([weight, np.zeros(len(none), np.uint32)]),
+            )
+            self._footprint_cells = footprint_cells
         return self._ballots
 
     def _summed(self) -> tuple[np.ndarray, np.ndarray]:
@@ -80,6 +105,20 @@ class _Traversal:
                 sums[lut[cells]] += votes
             self.pieces = [(unique.astype(np.uint32), sums)]
         return self.pieces[0]
+
+
+def _unvoted_footprint(cells: np.ndarray, size: int) -> np.ndarray:
+    """Cells (uint32, sorted) inside the closing of the voted `cells` by a size x size square
+    that have no votes: in view of the traversal but seen as nothing. The tile's edge rows and
+    columns are taken to go on beyond it (replicated border), so a gap that crosses the tile's
+    edge is closed up to the edge, the same as in its middle."""
+    if size <= 1 or not len(cells):
+        return np.zeros(0, np.uint32)
+    voted = np.zeros(CELLS_PER_TILE, np.uint8)
+    voted[cells] = 1
+    closed = cv2.morphologyEx(voted.reshape(TILE_CELLS, TILE_CELLS), cv2.MORPH_CLOSE,
+                              np.ones((size, size), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    return np.flatnonzero(closed.reshape(-1) > voted).astype(np.uint32)
 
 
 def _ballot(columns) -> tuple[np.ndarray, np.ndarray]:
@@ -113,6 +152,7 @@ class MergerShard:
             owns=owns,
             window_traversals=merger_cfg.window_traversals,
             min_votes=merger_cfg.min_votes,
+            footprint_cells=merger_cfg.footprint_cells,
             max_batch_patches=merger_cfg.max_batch_patches,
             max_batch_cells=merger_cfg.max_batch_cells,
         )
@@ -123,14 +163,17 @@ class MergerShard:
         owns: Callable[[TileId], bool] = lambda tile: True,
         window_traversals: int = WINDOW_TRAVERSALS,
         min_votes: int = MIN_VOTES,
+        footprint_cells: int = FOOTPRINT_CELLS,
         max_batch_patches: int = 4096,
         max_batch_cells: int = 4_000_000,
     ):
         self.owns = owns
-        if not 1 <= window_traversals < 256 or min_votes < 1:
-            raise ConfigError("merger.window_traversals must be in [1, 256), min_votes >= 1")
+        if not 1 <= window_traversals < 256 or min_votes < 1 or not 1 <= footprint_cells <= 63:
+            raise ConfigError("merger.window_traversals must be in [1, 256), min_votes >= 1, "
+                              "footprint_cells in [1, 63]")
         self.window = int(window_traversals)
         self.min_votes = int(min_votes)
+        self.footprint_cells = int(footprint_cells)
         self.max_batch_patches = int(max_batch_patches)
         self.max_batch_cells = int(max_batch_cells)
         self.seen: set[str] = set()
@@ -197,7 +240,8 @@ class MergerShard:
             if state is None or not state.dirty:
                 continue
             state.labels = tile_labels(
-                list(state.traversals.items()), window=self.window, min_votes=self.min_votes
+                list(state.traversals.items()), window=self.window, min_votes=self.min_votes,
+                footprint_cells=self.footprint_cells,
             )
             state.dirty = False
             done.append(t)
@@ -245,7 +289,8 @@ def _check_patch(p: GridPatch) -> None:
 
 
 def tile_labels(
-    traversals: list[tuple[str, _Traversal]], *, window: int, min_votes: int
+    traversals: list[tuple[str, _Traversal]], *, window: int, min_votes: int,
+    footprint_cells: int = FOOTPRINT_CELLS,
 ) -> np.ndarray:
     """The evidence rule (module docstring) for one tile -> (512, 512) uint8 labels.
 
@@ -255,10 +300,10 @@ def tile_labels(
     # so one integer add counts both and an argmax ranks by ballots, then votes
     packed = np.zeros(CELLS_PER_TILE * NUM_CLASSES, dtype=np.uint64)
     seen = np.zeros(CELLS_PER_TILE, dtype=np.uint16)  # observations taken per cell
-    # 1. most recent first, by the traversals' own time then id (arrival order never matters)
+    # 2. most recent first, by the traversals' own time then id (arrival order never matters)
     order = sorted(traversals, key=lambda kv: (kv[1].t_first_ns, kv[0]), reverse=True)
     for _, trav in order:
-        cells, ballot, weight = trav.ballots()  # 3. one ballot per traversal and cell
+        cells, ballot, weight = trav.ballots(footprint_cells)  # 1. one per traversal and cell
         if len(order) > window:  # 2. only each cell's `window` newest observations count
             fresh = seen[cells] < window
             cells, ballot, weight = cells[fresh], ballot[fresh], weight[fresh]
@@ -266,8 +311,18 @@ def tile_labels(
         packed[cells.astype(np.intp) * NUM_CLASSES + ballot] += weight.astype(np.uint64) + BALLOT
     observed = np.flatnonzero(seen)
     scores = packed.reshape(-1, NUM_CLASSES)[observed]
-    winner = np.argmax(scores, axis=1)
-    votes = scores[np.arange(len(observed)), winner] & np.uint64(BALLOT - 1)
+    rows = np.arange(len(observed))
+    low = np.uint64(BALLOT - 1)
+    # 3. paint (its best class) against the pooled ground ballots (road + none), then road
+    # against none; argmax ranks by ballots, then votes, then the lower class
+    paint = np.argmax(scores[:, 2:], axis=1) + 2
+    p_score = scores[rows, paint]
+    ground = scores[:, 0] + scores[:, 1]  # ballots and votes add in their own bits
+    p_ballots, g_ballots = p_score >> np.uint64(32), ground >> np.uint64(32)
+    more_votes = (p_score & low) > (ground & low)
+    paint_wins = (p_ballots > g_ballots) | ((p_ballots == g_ballots) & more_votes)
+    winner = np.where(paint_wins, paint, np.argmax(scores[:, :2], axis=1))
+    votes = scores[rows, winner] & low
     winner[votes < min_votes] = 0
     labels = np.zeros(CELLS_PER_TILE, dtype=np.uint8)
     labels[observed] = winner

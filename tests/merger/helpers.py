@@ -17,12 +17,16 @@ def patches_from_labels(
     votes_per_cell: int = 6,
     flip_rate: float = 0.0,
     n_patches: int = 2,
+    seen_nothing: np.ndarray | None = None,
 ) -> list[GridPatch]:
     """One traversal of a tile: every labelled cell gets `votes_per_cell` votes for its class
-    (a fraction `flip_rate` of the votes go to a random other class), split into patches."""
+    (a fraction `flip_rate` of the votes go to a random other class), split into patches. Cells
+    labelled 0 get no votes (as vehicles send them), except where the mask `seen_nothing` is
+    set: those get explicit class-0 votes (ground seen as nothing)."""
     rng = rng or np.random.default_rng(0)
     flat = labels.ravel()
-    cells = np.flatnonzero(flat).astype(np.uint32)
+    nothing = np.zeros(flat.shape, bool) if seen_nothing is None else seen_nothing.ravel()
+    cells = np.flatnonzero((flat > 0) | nothing).astype(np.uint32)
     votes = np.zeros((len(cells), NUM_CLASSES), np.uint16)
     votes[np.arange(len(cells)), flat[cells]] = votes_per_cell
     if flip_rate:
@@ -55,4 +59,13 @@ def lane_tile(offset_cells: int = 0) -> np.ndarray:
     labels[300:303, 160:240] = 3
     for k in range(6):
         labels[350:390, 240 + 9 * k : 245 + 9 * k] = 4
+    return labels
+
+
+def island_tile(offset_cells: int = 0, island=(196, 206)) -> np.ndarray:
+    """lane_tile whose lane line (at column 200 + offset) may sit beside a narrow strip of
+    ground that is nothing (class 0, columns island[0]:island[1], e.g. a painted-over island)."""
+    labels = lane_tile(offset_cells)
+    labels[:, island[0] : island[1]] = 0
+    labels[:, 200 + offset_cells : 202 + offset_cells] = 2
     return labels

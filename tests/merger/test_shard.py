@@ -6,7 +6,7 @@ import pytest
 from common.errors import TileError
 from common.messages import GridPatch
 from services.merger.shard import MergerShard, TileCodecCache
-from tests.merger.helpers import lane_tile, patches_from_labels
+from tests.merger.helpers import island_tile, lane_tile, patches_from_labels
 
 S = 1_000_000_000  # ns per s
 
@@ -62,28 +62,103 @@ def test_cells_below_minimum_evidence_stay_unknown():
     assert not _merged(p).labels((0, 0)).any()
 
 
-@pytest.mark.parametrize("change", ["repaint", "removal"])
+def _follow(shard, new_traversals, want) -> int | None:
+    """Apply new traversals one at a time; the count after which the map equals `want`."""
+    for k, patches in enumerate(new_traversals, start=1):
+        shard.apply_batch(patches)
+        shard.flush()
+        if np.array_equal(shard.labels((0, 0)), want):
+            return k
+    return None
+
+
+def _new_paint(labels, n=5, **kw):
+    return [patches_from_labels(labels, traversal=f"new{k}", t_ns=(100 + k) * 3600 * S, **kw)
+            for k in range(1, n + 1)]
+
+
+@pytest.mark.parametrize("change", ["repaint", "removal", "line_onto_nothing", "line_off_nothing"])
 def test_repaint_after_50_traversals_follows_within_3(change):
-    old = lane_tile()
-    new = lane_tile(offset_cells=10) if change == "repaint" else lane_tile()
+    """Old paint seen by 50 traversals, then the new paint: the map equals the new paint after
+    at most 3 (in fact 2) traversals. "line_onto_nothing": the old line's ground becomes
+    nothing (a 0.7 m strip the new traversals give no votes) and the line moves 1 m; the
+    reverse: a line moves off such a strip onto the road."""
+    old, new = lane_tile(), lane_tile(offset_cells=10)
     if change == "removal":
+        new = lane_tile()
         new[new == 3] = 1  # stop line removed
+    elif change == "line_onto_nothing":
+        new = island_tile(offset_cells=10, island=(198, 205))
+    elif change == "line_off_nothing":
+        old = island_tile(island=(203, 210))
     shard = MergerShard()
     shard.apply_batch(_traversals(old, 50))
-    followed_after = None
-    for k in range(1, 6):
-        shard.apply_batch(patches_from_labels(new, traversal=f"new{k}", t_ns=(100 + k) * 3600 * S))
-        shard.flush()
-        if np.array_equal(shard.labels((0, 0)), new):
-            followed_after = k
-            break
-    assert followed_after is not None and followed_after <= 3
+    shard.flush()
+    assert np.array_equal(shard.labels((0, 0)), old)
+    followed = _follow(shard, _new_paint(new), new)
+    assert followed is not None and followed <= 3, followed
 
 
-def test_one_noisy_traversal_never_flips_a_stable_cell():
-    truth = lane_tile()
-    wrong = lane_tile(offset_cells=10)
-    wrong[wrong == 4] = 5  # crosswalk seen as a sign
+def test_repaint_follows_within_3_when_each_traversal_misses_part():
+    """Each new traversal misses a third of the tile (another lane, a truck): every cell is
+    still seen by 2 of the first 3 new traversals, and the map follows after 3."""
+    old, new = lane_tile(), lane_tile(offset_cells=10)
+    shard = MergerShard()
+    shard.apply_batch(_traversals(old, 50))
+    partial = []
+    for k, rows in enumerate((slice(0, 170), slice(170, 340), slice(340, 512))):
+        seen = new.copy()
+        seen[rows] = 0  # not observed at all
+        partial.append(patches_from_labels(seen, traversal=f"new{k}", t_ns=(100 + k) * 3600 * S))
+    assert _follow(shard, partial, new) == 3
+
+
+def test_line_removed_from_wide_nothing_follows_with_explicit_none_votes():
+    """Paint on a wide island (4 m of nothing, beyond any footprint closing) goes away when the
+    traversals say they saw nothing there (class-0 votes): the rule takes them as ballots."""
+    old = island_tile(offset_cells=20, island=(190, 230))
+    new = island_tile(offset_cells=20, island=(190, 230))
+    new[new == 2] = 0
+    nothing = np.zeros_like(new, bool)
+    nothing[:, 190:230] = True
+    shard = MergerShard()
+    shard.apply_batch(_traversals(old, 50))
+    followed = _follow(shard, _new_paint(new, seen_nothing=nothing), new)
+    assert followed is not None and followed <= 3, followed
+
+
+def test_unobserved_cells_keep_their_label():
+    """No evidence, no change: traversals that do not see a part of the tile leave it as is."""
+    old = lane_tile()
+    shard = MergerShard()
+    shard.apply_batch(_traversals(old, 5))
+    other = np.zeros_like(old)
+    other[:, 350:450] = 1  # a road elsewhere in the tile, far from the old one
+    for patches in _new_paint(other, n=5):
+        shard.apply_batch(patches)
+    shard.flush()
+    labels = shard.labels((0, 0))
+    assert np.array_equal(labels[:, :320], old[:, :320])
+    assert np.array_equal(labels[:, 350:450], other[:, 350:450])
+
+
+@pytest.mark.parametrize(
+    "noise", ["other_paint", "road_over_paint", "paint_missed", "paint_on_nothing"]
+)
+def test_one_noisy_traversal_never_flips_a_stable_cell(noise):
+    """A stable map (2, 3 or 50 agreeing traversals) and one newest traversal that saw it
+    wrong, with huge votes: the map does not change."""
+    truth = island_tile(island=(260, 266))  # a 0.6 m strip of nothing inside the road
+    wrong = truth.copy()
+    if noise == "other_paint":
+        wrong = island_tile(offset_cells=10, island=(260, 266))
+        wrong[wrong == 4] = 5  # crosswalk seen as a sign
+    elif noise == "road_over_paint":
+        wrong[wrong >= 2] = 1
+    elif noise == "paint_missed":
+        wrong[wrong >= 2] = 0  # holes: seen, but as nothing
+    elif noise == "paint_on_nothing":
+        wrong[:, 260:266] = 2
     for n_stable in (2, 3, 50):
         shard = MergerShard()
         shard.apply_batch(_traversals(truth, n_stable))
@@ -93,9 +168,42 @@ def test_one_noisy_traversal_never_flips_a_stable_cell():
         assert np.array_equal(shard.labels((0, 0)), truth), n_stable
 
 
+def test_time_not_arrival_decides_which_paint_is_current():
+    """The new paint arrives first, the 50 older traversals after it: the map is the new one."""
+    old, new = lane_tile(), lane_tile(offset_cells=10)
+    shard = MergerShard()
+    for patches in _new_paint(new, n=2):
+        shard.apply_batch(patches)
+    shard.apply_batch(_traversals(old, 50))
+    shard.flush()
+    assert np.array_equal(shard.labels((0, 0)), new)
+
+
+def test_footprint_closes_narrow_gaps_only():
+    """Unvoted cells between voted ones up to 0.8 m apart were in view (none ballots); wider
+    gaps and the outside of the voted area were not, also at the tile's edges."""
+    labels = np.zeros((512, 512), np.uint8)
+    labels[:, 100:200] = 1
+    labels[:, 120:128] = 0  # 0.8 m gap: closed
+    labels[:, 150:160] = 0  # 1.0 m gap: open
+    (p,) = patches_from_labels(labels, traversal="d0", t_ns=0, n_patches=1)
+    shard = MergerShard()
+    shard.apply_patch(p)
+    cells, ballot, _ = shard.tiles_state[(0, 0)].traversals["d0"].ballots(shard.footprint_cells)
+    observed = np.zeros(512 * 512, bool)
+    observed[cells] = True
+    observed = observed.reshape(512, 512)
+    assert observed[:, 120:128].all() and not observed[:, 150:160].any()
+    assert not observed[:, :100].any() and not observed[:, 200:].any()
+    assert (ballot[~np.isin(cells, p.cells)] == 0).all()
+
+
 def test_map_is_independent_of_arrival_order(rng):
     patches = _traversals(lane_tile(), 8, rng=rng, flip_rate=0.3)
-    patches += _traversals(lane_tile(offset_cells=10), 3, t0=50, prefix="r", rng=rng, flip_rate=0.3)
+    patches += _traversals(island_tile(offset_cells=10, island=(196, 205)), 3, t0=50, prefix="r",
+                           rng=rng, flip_rate=0.3)
+    patches += _traversals(lane_tile(offset_cells=-10), 2, t0=60, prefix="q", rng=rng,
+                           flip_rate=0.3)
     digests = set()
     for _ in range(4):
         order = rng.permutation(len(patches))
