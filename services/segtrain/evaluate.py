@@ -51,26 +51,6 @@ class IouAccumulator:
             self.true_px[c] += int(t.sum())
 
     def result(self) -> dict:
-        return {NAMES[c]: (round(self.inter[c] / self.union[c], 4) if self.true_px[c] else None)
-                for c in CLASSES}
-
-
-class IouAccumulator:
-    def __init__(self):
-        self.inter = {c: 0 for c in CLASSES}
-        self.union = {c: 0 for c in CLASSES}
-        self.true_px = {c: 0 for c in CLASSES}
-
-    def add(self, pred, truth, mask=None):
-        if mask is not None:
-            pred, truth = pred[mask], truth[mask]
-        for c in CLASSES:
-            p, t = pred == c, truth == c
-            self.inter[c] += int((p & t).sum())
-            self.union[c] += int((p | t).sum())
-            self.true_px[c] += int(t.sum())
-
-    def result(self) -> dict:
         """{class name: IoU, or None where the class never occurs in the truth}."""
         return {NAMES[c]: (round(self.inter[c] / self.union[c], 4) if self.true_px[c] else None)
                 for c in CLASSES}

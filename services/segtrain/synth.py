@@ -1,4 +1,5 @@
-"""A small randomized ground-plane renderer for training data: World + camera + pose -> (RGB, labels).
+"""A small randomized ground-plane renderer for training data: World + camera + pose -> (RGB,
+labels).
 
 Every pixel's ray is intersected with the ground (paper eq. 1, `CameraModel.ground_points`), the
 world's label raster is sampled there (2x2 supersampling, per-class coverage -> labels), and the
@@ -17,6 +18,7 @@ from common.geometry import rot_z
 
 CELL_M = 0.05
 SUPER = 2
+CURB = 255  # raster value of curb cells (rendered, labelled none)
 
 
 TEXTURE = 1024  # world-anchored textures tile every 51.2 m
@@ -27,6 +29,11 @@ class WorldRaster:
 
     def __init__(self, world, rng):
         self.labels, self.x0, self.y0 = world.rasterize_all(4.0, CELL_M)
+        # curbs: a light strip 0.1-0.3 m wide just outside the road (label none, looks like paint)
+        road = (self.labels >= Cls.ROAD).astype(np.uint8)
+        k = 2 * int(rng.integers(2, 7)) + 1
+        curb = cv2.dilate(road, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) - road
+        self.labels = np.where(curb > 0, CURB, self.labels).astype(np.uint8)
         self.fine = _noise((TEXTURE, TEXTURE), rng, scale=1)  # grain
         self.coarse = _noise((TEXTURE, TEXTURE), rng, scale=64)  # patches, repairs, shadows
         self.wear = _noise((TEXTURE, TEXTURE), rng, scale=6)
@@ -113,7 +120,7 @@ def render(raster: WorldRaster, ground: GroundMap, pose, rng):
     rgb = _shade(lab, fine, coarse, wear, ground, h, style, rng)
     k = ground.ss
     rgb = rgb.reshape(h * k, w * k, 3)
-    labels = lab.reshape(h * k, w * k).astype(np.uint8)
+    labels = np.where(lab == CURB, 0, lab).reshape(h * k, w * k).astype(np.uint8)
     if k > 1:
         rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
         labels = _downsample_labels(labels, (w, h))
@@ -139,6 +146,7 @@ def _style(rng) -> dict:
         "shadow": rng.uniform(0.0, 0.6),
         "light": rng.uniform(0.55, 1.35),
         "fog_m": rng.uniform(60, 400),
+        "curb": rng.uniform(140, 215) * rng.uniform(0.95, 1.05, 3) if rng.random() < 0.7 else None,
     }
 
 
@@ -150,7 +158,10 @@ def _shade(lab, fine, coarse, wear, ground, h, s, rng):
     road = lab == Cls.ROAD
     rgb[:] = s["verge"] * (1.0 + 0.25 * fine[:, None] + 0.2 * coarse[:, None])
     rgb[road] = base[road]
-    paint = lab >= Cls.LANE_LINE
+    if s["curb"] is not None:
+        curb = lab == CURB
+        rgb[curb] = (s["curb"] * (1.0 + 0.08 * fine[:, None]))[curb]
+    paint = (lab >= Cls.LANE_LINE) & (lab != CURB)
     colour = np.array([s["paint"], s["paint"], s["paint"]])
     tint = np.array([s["paint"], s["paint"] * 0.8, 60.0]) if s["yellow"] else colour
     pc = np.where((lab == Cls.LANE_LINE)[:, None], tint, colour)
