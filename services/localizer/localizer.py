@@ -294,8 +294,14 @@ class Localizer:
         return d
 
     def _watch_integrity(self, res: IcpResult | None, accepted: bool) -> None:
-        """Re-initialize after a run of frames the filter could not trust."""
-        good = accepted or (res is not None and res.degenerate)
+        """Re-initialize after a run of frames the filter could not trust.
+
+        A frame with too few points to match (off the mapped area, road hidden by traffic) is
+        no evidence either way: the filter dead-reckons on odometry and GNSS, and its growing
+        covariance widens the match gate when markings come back."""
+        if res is None:
+            return
+        good = accepted or res.degenerate
         self.bad_frames = 0 if good and self.ekf.ok else self.bad_frames + 1
         if self.bad_frames >= self.reinit_bad_frames:
             self._reinitialize(f"{self.bad_frames} bad frames")
@@ -341,6 +347,7 @@ def get_localizer(lc, cache: TileCache, seed: int = 0) -> Localizer:
         gate_start_m=lc.icp_gate_start_m,
         gate_end_m=lc.icp_gate_end_m,
         huber_m=lc.icp_huber_m,
+        refine_iterations=lc.icp_refine_iterations,
         cov_scale=lc.icp_cov_scale,
         attitude_sigma_rad=math.radians(lc.attitude_sigma_deg),
     )

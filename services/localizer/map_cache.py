@@ -4,9 +4,12 @@ Each cached tile (512 x 512 cells of 0.1 m, row north, col east) gets, per match
 offset in cells from every cell to the nearest map cell of that class (cv2.distanceTransform
 WithLabels), computed once on the tile plus a margin borrowed from cached neighbours so matches
 cross tile borders. Offsets are int8 (|offset| <= 12.7 m; farther = no match), so a tile costs
-about 0.5 MB per class. Tiles live in an LRU bounded by `capacity`."""
+about 0.5 MB per class. For the sub-cell refinement of a match, each class also gets a likelihood
+field: its mask blurred by a Gaussian (float16, 0.5 MB per class), sampled bilinearly with its
+gradient, whose ridge is the marking's centre. Tiles live in an LRU bounded by `capacity`."""
 
 import logging
+import math
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -31,6 +34,13 @@ class TileFields:
     version: int
     offsets: np.ndarray  # [class slot, (d_row, d_col), row, col]
     present: np.ndarray  # bool [class slot]: the class occurs in or near this tile
+    smooth: np.ndarray | None = None  # float16 [class slot, row, col]: blurred class mask
+
+
+def likelihood_field(mask_hw: np.ndarray, sigma_cells: float) -> np.ndarray:
+    """Boolean mask -> float32 mask blurred by a Gaussian of sigma_cells (values in [0, 1])."""
+    k = int(2 * math.ceil(3.0 * sigma_cells) + 1)
+    return cv2.GaussianBlur(mask_hw.astype(np.float32), (k, k), sigma_cells)
 
 
 def nearest_offsets(mask_hw: np.ndarray) -> np.ndarray:
@@ -54,9 +64,10 @@ def nearest_offsets(mask_hw: np.ndarray) -> np.ndarray:
 class TileCache:
     """LRU of decoded tiles (labels + version) and their lazily built matching fields."""
 
-    def __init__(self, capacity: int = 25, margin_cells: int = 30):
+    def __init__(self, capacity: int = 25, margin_cells: int = 30, field_sigma_cells: float = 1.5):
         self.capacity = int(capacity)
         self.margin = int(margin_cells)
+        self.field_sigma_cells = float(field_sigma_cells)
         self._labels: OrderedDict[TileId, tuple[int, np.ndarray]] = OrderedDict()
         self._fields: dict[TileId, TileFields] = {}
         self.fields_built = 0
@@ -126,6 +137,7 @@ class TileCache:
         win = self._window(tile)
         m, n = self.margin, TILE_CELLS
         offsets = np.full((len(MATCH_CLASSES), 2, n, n), NO_MATCH, dtype=np.int8)
+        smooth = np.zeros((len(MATCH_CLASSES), n, n), dtype=np.float16)
         present = np.zeros(len(MATCH_CLASSES), dtype=bool)
         for slot, cls in enumerate(MATCH_CLASSES):
             mask = win == cls
@@ -133,7 +145,8 @@ class TileCache:
                 continue
             present[slot] = True
             offsets[slot] = nearest_offsets(mask)[:, m : m + n, m : m + n]
-        return TileFields(tile, self.version(tile), offsets, present)
+            smooth[slot] = likelihood_field(mask, self.field_sigma_cells)[m : m + n, m : m + n]
+        return TileFields(tile, self.version(tile), offsets, present, smooth)
 
     # -- queries ----------------------------------------------------------------------------
 
@@ -164,6 +177,50 @@ class TileCache:
             nearest[sel, 1] = (gxy[sel, 1] + d_row + 0.5) * CELL_M
             valid[sel] = ok
         return nearest, valid
+
+    def field(self, points_xy_m: np.ndarray, slots: np.ndarray):
+        """Likelihood field of each point's class at world points: (value (N,), gradient (N, 2)
+        per metre, valid (N,)), bilinear between cell centres; invalid where a corner's tile is
+        not cached or the slot is -1."""
+        pts = np.asarray(points_xy_m, dtype=np.float64)
+        slots = np.asarray(slots, dtype=np.int64)
+        u = pts / CELL_M - 0.5  # cell-centre coordinates
+        base = np.floor(u).astype(np.int64)
+        a, b = (u - base).T
+        corner = {}
+        valid = slots >= 0
+        for dx in (0, 1):
+            for dy in (0, 1):
+                v, ok = self._sample(base + (dx, dy), slots)
+                corner[dx, dy] = v
+                valid &= ok
+        f00, f10, f01, f11 = corner[0, 0], corner[1, 0], corner[0, 1], corner[1, 1]
+        value = (1 - a) * (1 - b) * f00 + a * (1 - b) * f10 + (1 - a) * b * f01 + a * b * f11
+        grad = (
+            np.stack(
+                [(1 - b) * (f10 - f00) + b * (f11 - f01), (1 - a) * (f01 - f00) + a * (f11 - f10)],
+                axis=1,
+            )
+            / CELL_M
+        )
+        return np.where(valid, value, 0.0), np.where(valid[:, None], grad, 0.0), valid
+
+    def _sample(self, gxy: np.ndarray, slots: np.ndarray):
+        """Smooth field values at global cells (N, 2) for class slots (N,); (values, cached)."""
+        out = np.zeros(len(gxy))
+        ok = np.zeros(len(gxy), dtype=bool)
+        tiles, flat = split_global_cells(gxy)
+        key = tiles[:, 0] * 1_000_003 + tiles[:, 1]
+        for k in np.unique(key):
+            sel = np.flatnonzero(key == k)
+            f = self.fields((int(tiles[sel[0], 0]), int(tiles[sel[0], 1])))
+            if f is None:
+                continue
+            s = np.maximum(slots[sel], 0)
+            rows, cols = np.divmod(flat[sel], TILE_CELLS)
+            out[sel] = f.smooth[s, rows, cols]
+            ok[sel] = True
+        return out, ok
 
     def class_at(self, points_xy_m: np.ndarray) -> np.ndarray:
         """Map class at world points (N,) uint8; 0 where no tile is cached."""

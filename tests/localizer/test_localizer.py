@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 
+from common.classes import Cls
 from common.config import LocalizerConfig
 from services.localizer.ekf import PoseFilter
 from services.localizer.icp import Icp
@@ -94,3 +95,31 @@ def test_whole_drive_converges_and_stays_available(road_cache, rng):
     assert m["availability_0_5m"] == 1.0
     assert m["y_m"]["p90"] < 0.05 and m["x_m"]["p90"] < 0.1 and m["yaw_deg"]["p90"] < 0.2
     assert all(e.ok for e in est[-50:])
+
+
+def test_likelihood_field_peaks_at_the_line_centre_and_points_uphill():
+    cache = TileCache()
+    labels = np.zeros((512, 512), np.uint8)
+    labels[:, 100:102] = Cls.LANE_LINE  # x in [10.0, 10.2] m
+    cache.put((0, 0), 1, labels)
+    xs = np.linspace(9.6, 10.6, 41)
+    pts = np.stack([xs, np.full_like(xs, 20.0)], axis=1)
+    value, grad, valid = cache.field(pts, class_slots(np.full(len(xs), Cls.LANE_LINE)))
+    assert valid.all()
+    assert abs(xs[np.argmax(value)] - 10.1) <= 0.05
+    assert (grad[xs < 10.0, 0] > 0).all() and (grad[xs > 10.2, 0] < 0).all()
+    assert np.allclose(grad[:, 1], 0.0)
+    _, _, valid = cache.field(pts, class_slots(np.full(len(xs), Cls.NONE)))
+    assert not valid.any()  # unmatched classes have no field
+
+
+def test_frames_without_points_do_not_force_a_reinitialization(road_cache, rng):
+    """Off the mapped area the filter dead-reckons; it re-initializes only on contradicting
+    matches, not on missing ones."""
+    loc = get_localizer(LocalizerConfig(), road_cache)
+    loc.ekf.reset(np.array([62.0, 28.25, 0.0]), np.diag([0.01, 0.01, 1e-4]))
+    for k in range(3 * loc.reinit_bad_frames):
+        t = (k + 1) * 100_000_000
+        loc.predict(t, 10.0, 0.0)
+        loc.process_frame(t, np.zeros((0, 2)), np.zeros(0, np.uint8))
+    assert loc.ekf.initialized and loc.inits == 0
