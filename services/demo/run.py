@@ -530,6 +530,13 @@ def format_table(report: dict) -> str:
     for key, label in (("lateral_m", "lateral [m]"), ("longitudinal_m", "longitudinal [m]")):
         ours = loc.get(key) or {}
         lines.append(f"{label:22s}{_f(ours.get('mean')):>10s}{_f(ours.get('p90')):>10s}")
+    if "frames_on_map" in loc:
+        every = loc.get("all_frames") or {}
+        lines.append(
+            f"  (on-map frames: {loc['frames_on_map']} of {loc.get('frames')}; all frames: x "
+            f"{_f((every.get('x_m') or {}).get('mean'))}, y {_f((every.get('y_m') or {}).get('mean'))}"
+            f" m, availability {_f(every.get('availability_0_5m'), '{:.2f}')})"
+        )
     lines.append(f"{'map size [KB/km]':22s}{m['kb_per_km']:>10.1f}{'':10s}"
                  f"{ev.PAPER['kb_per_km']:>12.1f}"
                  f"   (raw grid {m['raw_kb_per_km']:.0f}, PNG {m['png_kb_per_km']:.0f})")

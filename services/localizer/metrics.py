@@ -4,7 +4,11 @@ x/y errors are in the world frame, lateral/longitudinal in the true vehicle fram
 y left), yaw in degrees; statistics (mean, p90, max of absolute errors) are taken over the frames
 after convergence. Convergence: the first frame from which the position error stays under the
 availability threshold for `hold_s`; availability: share of frames after it with error < 0.5 m
-(a frame without an estimate counts as unavailable)."""
+(a frame without an estimate counts as unavailable).
+
+With `on_map` (per frame: the map covers the camera's view at the true pose), the statistics and
+the availability are those of the on-map frames after convergence, as in the paper's evaluation
+(a car off the mapped area has nothing to match); `all_frames` keeps them over every frame."""
 
 import numpy as np
 
@@ -59,12 +63,20 @@ def localization_metrics(
     *,
     threshold_m: float = 0.5,
     hold_s: float = 1.0,
+    on_map: np.ndarray | None = None,
 ) -> dict:
     """The report's localization section from per-frame estimates (NaN = none) and truth."""
     t_s = (np.asarray(t_ns, dtype=np.int64) - int(t_ns[0])) * 1e-9 if len(t_ns) else np.zeros(0)
     est = np.asarray(est, dtype=float)
     true = np.asarray(true, dtype=float)
     valid_truth = np.all(np.isfinite(true), axis=1)
+    if on_map is not None:
+        mapped = np.asarray(on_map, dtype=bool)[valid_truth]
+        out = localization_metrics(t_ns, est, true, threshold_m=threshold_m, hold_s=hold_s)
+        on = _select(t_ns, est, true, valid_truth, mapped, threshold_m, hold_s)
+        on["frames"], on["frames_on_map"] = out["frames"], int(mapped.sum())
+        on["all_frames"] = {k: out[k] for k in _STATS + ("availability_0_5m",)}
+        return on
     est, true, t_s = est[valid_truth], true[valid_truth], t_s[valid_truth]
     err = pose_errors(est, true)
     pos = np.where(np.isfinite(err["position_m"]), err["position_m"], np.inf)
@@ -76,12 +88,35 @@ def localization_metrics(
     }
     after = slice(k if k is not None else len(t_s), None)
     sel = np.isfinite(pos[after])
-    for name in ("lateral_m", "longitudinal_m", "x_m", "y_m", "yaw_deg"):
+    for name in _STATS:
         out[name] = _stats(err[name][after][sel])
     n_after = len(pos[after])
     if n_after:
         out["availability_0_5m"] = float(np.mean(pos[after] < threshold_m))
     out["frames_after_convergence"] = int(n_after)
+    return out
+
+
+_STATS = ("lateral_m", "longitudinal_m", "x_m", "y_m", "yaw_deg")
+
+
+def _select(t_ns, est, true, valid_truth, mapped, threshold_m, hold_s) -> dict:
+    """Metrics over the on-map frames after convergence (convergence found on all frames)."""
+    t_s = (np.asarray(t_ns, dtype=np.int64) - int(t_ns[0])) * 1e-9
+    est, true, t_s = est[valid_truth], true[valid_truth], t_s[valid_truth]
+    err = pose_errors(est, true)
+    pos = np.where(np.isfinite(err["position_m"]), err["position_m"], np.inf)
+    k = convergence_index(pos, t_s, threshold_m, hold_s) if len(pos) else None
+    after = np.zeros(len(pos), dtype=bool)
+    if k is not None:
+        after[k:] = True
+    use = after & mapped
+    out = {"convergence_s": None if k is None else float(t_s[k])}
+    fin = use & np.isfinite(pos)
+    out["availability_0_5m"] = float(np.mean(pos[use] < threshold_m)) if use.any() else 0.0
+    for name in _STATS:
+        out[name] = _stats(err[name][fin])
+    out["frames_after_convergence"] = int(after.sum())
     return out
 
 

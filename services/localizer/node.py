@@ -51,6 +51,7 @@ def localize_log(log: DriveLog, cfg, session, vehicle: str, out: Path) -> dict:
     frames = _FrameSource(log, cfg)
     streams = log.streams
     timings = {"segment_ms": [], "frame_ms": [], "fetch_ms": []}
+    on_map: list[bool] = []
     diag_file = open(out / "diagnostics.jsonl", "w")
     try:
 
@@ -67,6 +68,7 @@ def localize_log(log: DriveLog, cfg, session, vehicle: str, out: Path) -> dict:
 
         def on_estimate(i, est):
             timings["frame_ms"].append((time.perf_counter() - timings["_t"]) * 1e3)
+            on_map.append(map_covers_view(cache, streams["frame_pose_true"][i], cfg.roi))
             if publisher is not None and np.all(np.isfinite(est.pose)):
                 publisher.put(
                     codec.encode(
@@ -90,7 +92,10 @@ def localize_log(log: DriveLog, cfg, session, vehicle: str, out: Path) -> dict:
     poses = np.array([e.pose for e in estimates]).reshape(-1, 3)
     write_tum(out / "trajectory.tum", streams["frame_t_ns"][: len(poses)], poses)
     report = localization_metrics(
-        streams["frame_t_ns"][: len(poses)], poses, streams["frame_pose_true"][: len(poses)]
+        streams["frame_t_ns"][: len(poses)],
+        poses,
+        streams["frame_pose_true"][: len(poses)],
+        on_map=np.array(on_map, dtype=bool),
     )
     report.update(
         map_codec=lc.map_codec,
@@ -138,6 +143,25 @@ class _FrameSource:
         if not self.estimate_attitude:
             return pts, cls
         return pts, cls, (jac if self.roll else jac[:, :, :1])
+
+
+def map_covers_view(cache, true_pose, roi, min_fraction: float = 0.25) -> bool:
+    """Whether the map has road or paint under at least min_fraction of the ROI seen from the
+    true pose (a 1 m grid); False without a true pose. Evaluation only: the car does not know it."""
+    if not np.all(np.isfinite(true_pose)):
+        return False
+    xs = roi.x_min_m + 0.5 + np.arange(int(roi.length_m))
+    ys = -roi.width_m / 2 + 0.5 + np.arange(int(roi.width_m))
+    grid = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
+    c, s = math.cos(true_pose[2]), math.sin(true_pose[2])
+    world = np.stack(
+        [
+            true_pose[0] + c * grid[:, 0] - s * grid[:, 1],
+            true_pose[1] + s * grid[:, 0] + c * grid[:, 1],
+        ],
+        axis=1,
+    )
+    return bool(np.mean(cache.class_at(world) != 0) >= min_fraction)
 
 
 def _wanted_tiles(loc, streams, i: int, lc):
