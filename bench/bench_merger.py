@@ -124,9 +124,19 @@ def _spawn(args: list[str], log) -> subprocess.Popen:
                             stdout=subprocess.DEVNULL, stderr=log)
 
 
-def ingest_rate(n_shards: int, batches: list[IngestBatch], window: int = 8) -> float:
+def _cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process so far (Linux /proc), 0 where unavailable."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+def ingest_rate(n_shards: int, batches: list[IngestBatch], window: int = 8) -> dict:
     """Patches per second for `batches` sent to their owner shards (n_shards processes), from
-    the first send until every batch is acked AND every shard has merged and compressed it."""
+    the first send until every batch is acked AND every shard has merged and compressed it;
+    with the CPU seconds each process (router, shards, this load generator) spent meanwhile."""
     from common.bus import free_tcp_port, open_session, wait_for_tcp
     from common.config import BusConfig
 
@@ -146,14 +156,21 @@ def ingest_rate(n_shards: int, batches: list[IngestBatch], window: int = 8) -> f
                 work = [(keys.ingest(owner_of_tile(b.patches[0].tile, n_shards)), codec.encode(b))
                         for b in batches]
                 n = sum(len(b.patches) for b in batches)
+                cpu0, own0 = [_cpu_s(p.pid) for p in procs], time.process_time()
                 t0 = time.perf_counter()
                 _pipelined(session, work, window)
+                acked_s = time.perf_counter() - t0
                 # every shard's stats reply comes after its flush: labels merged, tiles compressed
                 handles = [session.get(keys.stats("merger", f"s{k}"), timeout=120.0)
                            for k in range(n_shards)]
                 if not all(any(r.ok is not None for r in h) for h in handles):
                     raise RuntimeError("a shard did not answer its stats")
-                return n / (time.perf_counter() - t0)
+                wall = time.perf_counter() - t0
+                cpu = [_cpu_s(p.pid) - c for p, c in zip(procs, cpu0, strict=True)]
+                return {"per_s": n / wall, "wall_s": wall, "acked_s": acked_s,
+                        "cpu_s": {"router": round(cpu[0], 3),
+                                  **{f"s{k}": round(cpu[k + 1], 3) for k in range(n_shards)},
+                                  "load_generator": round(time.process_time() - own0, 3)}}
         finally:
             for p in reversed(procs):
                 p.terminate()
@@ -192,31 +209,77 @@ def _expect_ack(handler) -> None:
     raise RuntimeError("no ack")
 
 
+def balanced_tiles(tiles: dict, per_shard: int) -> dict:
+    """The `per_shard` densest label rasters, each placed on one tile owned by shard 0 and one
+    owned by shard 1 (of 2): both shards get the same work, cell for cell (a world's own tiles
+    split very unevenly between 2 shards: whole 8 x 8 tile regions go to one owner)."""
+    dense = sorted(tiles.values(), key=np.count_nonzero, reverse=True)[:per_shard]
+    free = {0: [], 1: []}
+    tx = 0
+    while min(len(v) for v in free.values()) < len(dense):
+        for ty in range(0, 64, 8):  # one tile per region (8 x 8 tiles), regions side by side
+            free[owner_of_tile((tx, ty), 2)].append((tx, ty))
+        tx += 8
+    out = {}
+    for k, labels in enumerate(dense):
+        out[free[0][k]] = labels
+        out[free[1][k]] = labels
+    return out
+
+
 def ingest_scaling(quick: bool) -> dict:
-    tiles = world_label_tiles(True)
-    # both shards must own tiles: pick tiles of each owner alternately
-    by_owner = {0: [], 1: []}
-    for t in tiles:
-        by_owner[owner_of_tile(t, 2)].append(t)
-    n = min(len(by_owner[0]), len(by_owner[1]))
-    chosen = [t for pair in zip(by_owner[0][:n], by_owner[1][:n], strict=True) for t in pair]
-    patches = traversal_patches({t: tiles[t] for t in chosen}, traversals=2 if quick else 8,
-                                pieces=8)
+    tiles = balanced_tiles(world_label_tiles(True), per_shard=4 if quick else 8)
+    patches = traversal_patches(tiles, traversals=2 if quick else 8, pieces=8)
     batches = [IngestBatch(patches[i:i + 4]) for i in range(0, len(patches), 4)]
     rounds = 1 if quick else 3
     ones, twos = [], []
     for _ in range(rounds):  # alternate, best of each: the machine is shared
         ones.append(ingest_rate(1, batches))
         twos.append(ingest_rate(2, batches))
-    one, two = max(ones), max(twos)
-    return {"ingest_1_shard_per_s": round(one, 1), "ingest_2_shards_per_s": round(two, 1),
-            "ratio": round(two / one, 3),
-            "unit": "patches/s, acked + merged + compressed (stats reply after the last flush)", "cores": os.cpu_count(),
-            "rounds": {"one_shard": [round(v, 1) for v in ones],
-                       "two_shards": [round(v, 1) for v in twos]},
+    one = max(ones, key=lambda r: r["per_s"])
+    two = max(twos, key=lambda r: r["per_s"])
+    return {"ingest_1_shard_per_s": round(one["per_s"], 1),
+            "ingest_2_shards_per_s": round(two["per_s"], 1),
+            "ratio": round(two["per_s"] / one["per_s"], 3),
+            "unit": "patches/s, acked + merged + compressed (stats reply after the last flush)",
+            "cores": os.cpu_count(),
+            "rounds": {"one_shard": [round(r["per_s"], 1) for r in ones],
+                       "two_shards": [round(r["per_s"], 1) for r in twos]},
+            "best_runs": {"one_shard": _rounded(one), "two_shards": _rounded(two)},
+            "cpu_bound_ratio_2_cores": _cpu_bound_ratio(ones, twos),
             "load_average_1m": round(os.getloadavg()[0], 2),
-            "patches": len(patches), "cell_votes": sum(len(p.cells) for p in patches),
+            "patches": len(patches), "tiles": len(tiles), "tiles_per_shard": len(tiles) // 2,
+            "cell_votes": sum(len(p.cells) for p in patches),
             "goal_ratio_min": 1.7}
+
+
+def _cpu_bound_ratio(ones: list[dict], twos: list[dict], cores: int = 2) -> dict:
+    """What the measured CPU seconds allow on `cores` cores of their own (the shared machine's
+    wall clock does not show it): each run takes at least its busiest process's CPU time and
+    at least all its processes' CPU time over the cores (router and load generator included).
+    Median over the rounds."""
+    def bound(run):
+        cpu = run["cpu_s"]
+        return max(max(v for k, v in cpu.items() if k.startswith("s")), sum(cpu.values()) / cores)
+
+    one = float(np.median([bound(r) for r in ones]))
+    two = float(np.median([bound(r) for r in twos]))
+    return {"ratio": round(one / two, 3), "one_shard_s": round(one, 3),
+            "two_shards_s": round(two, 3), "cores": cores,
+            "cpu_s_shards_total": {"one_shard": _median_cpu(ones, "s"),
+                                   "two_shards": _median_cpu(twos, "s")},
+            "cpu_s_router_and_load_generator": {
+                "one_shard": _median_cpu(ones, ("router", "load_generator")),
+                "two_shards": _median_cpu(twos, ("router", "load_generator"))}}
+
+
+def _median_cpu(runs: list[dict], prefix) -> float:
+    return round(float(np.median([sum(v for k, v in r["cpu_s"].items() if k.startswith(prefix))
+                                  for r in runs])), 3)
+
+
+def _rounded(run: dict) -> dict:
+    return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in run.items()}
 
 
 def run(quick: bool = False) -> dict:

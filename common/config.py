@@ -156,10 +156,12 @@ class MergerConfig:
     footprint_cells: int = 9  # a traversal's unvoted cells inside its closed footprint vote none
     min_votes: int = 2  # votes behind a label, else unknown
     debounce_s: float = 0.5  # recompress / publish changed tiles at most this often
+    debounce_max_s: float = 2.0  # ... and, while batches keep coming, at the latest this late
     max_batch_patches: int = 4096
     max_batch_cells: int = 4_000_000
     sqlite_synchronous: str = "FULL"  # FULL: the ack survives power loss, not just kill -9
     ingest_queue: int = 256
+    ingest_group: int = 32  # waiting ingest queries stored in one transaction (group commit)
 
 
 @dataclass(frozen=True)

@@ -52,18 +52,37 @@ class DurableShard:
     def ingest(self, payload: bytes) -> IngestAck:
         """Strictly decode a batch, persist its new patches, apply them, return the ack. Any bad
         input yields IngestAck(error=...) and leaves the state untouched."""
-        try:
-            batch = codec.decode(payload, expect=IngestBatch)
-        except CodecError as exc:
-            return self._error(f"bad IngestBatch: {exc}")
-        with self.lock:
+        return self.ingest_many([payload])[0]
+
+    def ingest_many(self, payloads: list[bytes]) -> list[IngestAck]:
+        """Group commit: the acks of several batches (queries waiting together), whose new
+        patches are stored in ONE transaction (one fsync) before any of them is applied or
+        acked. Each batch is checked on its own: a bad one gets its error ack and adds nothing.
+        A failing store raises (no ack at all, nothing applied): the senders retry."""
+        acks: list[IngestAck | None] = [None] * len(payloads)
+        decoded = []
+        for i, payload in enumerate(payloads):  # outside the lock: flushes go on meanwhile
             try:
-                new = self.shard.check_batch(batch.patches)
-            except TileError as exc:
-                return self._error(str(exc))
+                decoded.append((i, codec.decode(payload, expect=IngestBatch)))
+            except CodecError as exc:
+                acks[i] = self._error(f"bad IngestBatch: {exc}")
+        with self.lock:
+            checked, new, new_ids = [], [], set()
+            for i, batch in decoded:
+                try:
+                    fresh = self.shard.check_batch(batch.patches)
+                except TileError as exc:
+                    acks[i] = self._error(str(exc))
+                    continue
+                fresh = [p for p in fresh if p.patch_id not in new_ids]  # an earlier batch's
+                new_ids.update(p.patch_id for p in fresh)
+                new += fresh
+                checked.append((i, batch))
             if new:
-                self.store.save_patches(new)  # durable before the ack (raises -> no ack)
-            return IngestAck(results=self.shard.apply_batch(batch.patches))
+                self.store.save_patches(new)  # durable before any ack (raises -> no ack)
+            for i, batch in checked:
+                acks[i] = IngestAck(results=self.shard.apply_checked(batch.patches))
+        return acks
 
     def _error(self, message: str) -> IngestAck:
         with self.lock:

@@ -1,12 +1,14 @@
 """`roadmap merger --shard I --shards N [--store PATH]`: one tile merger shard on Zenoh.
 
-Ingest (`roadmap/ingest/s<I>`, complete): a FifoChannel drained by the main loop, which applies
-each batch durably (DurableShard) and then replies with the IngestAck; a flush thread recomputes
-and recompresses changed tiles meanwhile. Tiles
+Ingest (`roadmap/ingest/s<I>`, complete): a FifoChannel drained by the main loop, which takes
+the queries waiting together (up to merger.ingest_group), stores their new patches in one
+transaction (group commit: one fsync), applies them and then replies each its IngestAck; a
+flush thread recomputes and recompresses changed tiles meanwhile. Tiles
 (`roadmap/tile/<tx>/<ty>`, one complete queryable per held tile) and stats
 (`roadmap/stats/merger/s<I>`) are enqueued by cheap RX-thread callbacks and answered by a serve
-thread from the cached compressed tiles. Changed tiles are recompressed at most every
-`merger.debounce_s` and published on `roadmap/tile-update/<tx>/<ty>`. Liveliness token
+thread from the cached compressed tiles. Changed tiles are recompressed once ingest has been
+quiet for `merger.debounce_s` (at the latest `merger.debounce_max_s` after a change, while
+batches keep coming) and published on `roadmap/tile-update/<tx>/<ty>`. Liveliness token
 `roadmap/alive/merger/s<I>` once recovery is done. Runs until SIGTERM/SIGINT."""
 
 import logging
@@ -20,7 +22,7 @@ from common.config import RoadmapConfig
 from common.contours import CODEC
 from common.errors import CodecError, ConfigError
 from common.grid import owner_of_tile
-from common.messages import IngestAck, Tile
+from common.messages import ACCEPTED, IngestAck, Tile
 from services.merger.durable import DurableShard
 from services.merger.shard import MergerShard, TileCodecCache
 from services.merger.store import ShardStore
@@ -28,6 +30,7 @@ from services.merger.store import ShardStore
 logger = logging.getLogger(__name__)
 
 IDLE_WAIT_S = 0.005
+GROUP_BYTES = 32 << 20  # payload bytes of the ingest queries taken into one group commit
 
 
 def get_durable_shard(shard: int, shards: int, store_path: str, cfg: RoadmapConfig) -> DurableShard:
@@ -54,11 +57,16 @@ def get_durable_shard(shard: int, shards: int, store_path: str, cfg: RoadmapConf
 
 class MergerNode:
     def __init__(self, session, durable: DurableShard, *, shard: int, debounce_s: float,
-                 ingest_queue: int = 256):
+                 debounce_max_s: float = 2.0, ingest_queue: int = 256, ingest_group: int = 32):
         self.session = session
         self.durable = durable
         self.shard = shard
         self.debounce_s = debounce_s
+        self.ingest_group = max(1, int(ingest_group))
+        self.debounce_max_s = max(debounce_s, debounce_max_s)
+        self._last_ingest = 0.0  # monotonic time of the last ingest group
+        self._changed_since: float | None = None  # first ingest not yet flushed
+        self._publish_lock = threading.Lock()
         self.serve_queue: queue.Queue = queue.Queue()
         self.tile_queryables = {}
         self.ingest = session.declare_queryable(keys.ingest(shard), FifoChannel(ingest_queue),
@@ -88,9 +96,9 @@ class MergerNode:
         self.flushing.start()
         try:
             while not stop.is_set():
-                query = self.ingest.try_recv()
-                if query is not None:
-                    self._handle_ingest(query)
+                group = self._waiting_ingest()
+                if group:
+                    self._handle_ingest(group)
                 else:
                     stop.wait(IDLE_WAIT_S)
         finally:
@@ -101,32 +109,66 @@ class MergerNode:
             self._undeclare()
 
     def _flush_loop(self) -> None:
-        """Debounced recompression: at most every debounce_s, and never busier than half the
-        time (waits at least as long as the last flush took), so ingest keeps flowing."""
+        """Debounced recompression: once ingest has been quiet for debounce_s, or, while batches
+        keep coming, once the oldest unpublished change is debounce_max_s old (a burst is
+        merged and compressed once, not every debounce_s); never busier than half the time
+        (waits at least as long as the last flush took), so ingest keeps flowing."""
         pause = self.debounce_s
         while not self._stop.wait(pause):
-            t0 = time.monotonic()
+            now = time.monotonic()
+            since = self._changed_since
+            if since is None:
+                continue
+            quiet = now - self._last_ingest >= self.debounce_s
+            if not quiet and now - since < self.debounce_max_s:
+                pause = min(self.debounce_s, since + self.debounce_max_s - now)
+                continue
+            self._changed_since = None  # changes from here on wait for the next flush
             try:
                 self._flush_and_publish()
             except Exception:  # keep flushing later; the data is safe in the store
                 logger.exception("flush failed")
-            pause = max(self.debounce_s, time.monotonic() - t0)
+                self._changed_since = since
+            pause = max(self.debounce_s, time.monotonic() - now)
 
-    def _handle_ingest(self, query) -> None:
-        with query:
-            payload = query.payload.to_bytes() if query.payload is not None else b""
-            try:
-                ack = self.durable.ingest(payload)
-            except Exception as exc:  # e.g. the store failed: no ack, the vehicle retries
-                logger.exception("ingest failed")
-                ack = IngestAck(error=f"shard failed to store the batch: {exc}")
-            query.reply(query.key_expr, codec.encode(ack))
+    def _waiting_ingest(self) -> list:
+        """The ingest queries waiting now (at most ingest_group of them, ~GROUP_BYTES)."""
+        group, size = [], 0
+        while len(group) < self.ingest_group and size < GROUP_BYTES:
+            query = self.ingest.try_recv()
+            if query is None:
+                break
+            group.append(query)
+            size += len(query.payload) if query.payload is not None else 0
+        return group
+
+    def _handle_ingest(self, group: list) -> None:
+        """One group commit for the waiting batches, then each its ack (DESIGN: an ack means
+        stored)."""
+        payloads = [q.payload.to_bytes() if q.payload is not None else b"" for q in group]
+        try:
+            acks = self.durable.ingest_many(payloads)
+        except Exception as exc:  # e.g. the store failed: no ack, the vehicles retry
+            logger.exception("ingest failed")
+            acks = [IngestAck(error=f"shard failed to store the batch: {exc}")] * len(group)
+        self._last_ingest = time.monotonic()
+        accepted = any(ACCEPTED in ack.results.values() for ack in acks)
+        if accepted and self._changed_since is None:
+            self._changed_since = self._last_ingest
+        for query, ack in zip(group, acks, strict=True):
+            with query:
+                query.reply(query.key_expr, codec.encode(ack))
 
     def _flush_and_publish(self) -> None:
         self.durable.flush()
-        for tile in self.durable.take_changed():
-            self._declare_tile(tile.tile)
-            self.session.put(keys.tile_update(*tile.tile), codec.encode(tile))
+        self._publish_changed()
+
+    def _publish_changed(self) -> None:
+        """Declare the queryables of new tiles and publish the changed ones (any thread)."""
+        with self._publish_lock:
+            for tile in self.durable.take_changed():
+                self._declare_tile(tile.tile)
+                self.session.put(keys.tile_update(*tile.tile), codec.encode(tile))
 
     def _undeclare(self) -> None:
         for entity in [self.token, self.ingest, self.stats_q, *self.tile_queryables.values()]:
@@ -153,7 +195,8 @@ class MergerNode:
     def _serve(self, query) -> None:
         key = str(query.key_expr)
         if key == keys.stats("merger", f"s{self.shard}"):
-            query.reply(key, codec.encode(self.durable.stats()))
+            query.reply(key, codec.encode(self.durable.stats()))  # stats flush first
+            self._publish_changed()  # so every tile the stats list answers its queries now
             return
         tile = keys.parse_tile(key)
         since, want = _tile_selector(query.parameters)
@@ -186,7 +229,9 @@ def main(args, cfg: RoadmapConfig) -> int:
         with open_session(cfg.bus) as session:
             node = MergerNode(session, durable, shard=args.shard,
                               debounce_s=cfg.merger.debounce_s,
-                              ingest_queue=cfg.merger.ingest_queue)
+                              debounce_max_s=cfg.merger.debounce_max_s,
+                              ingest_queue=cfg.merger.ingest_queue,
+                              ingest_group=cfg.merger.ingest_group)
             logger.info("merger s%d/%d serving", args.shard, args.shards)
             node.run(stop)
     finally:

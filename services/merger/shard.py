@@ -202,10 +202,15 @@ class MergerShard:
 
     def apply_batch(self, patches: list[GridPatch]) -> dict[str, str]:
         """Check then apply a whole batch: patch id -> accepted | duplicate. All or nothing."""
-        new = {p.patch_id for p in self.check_batch(patches)}
+        self.check_batch(patches)
+        return self.apply_checked(patches)
+
+    def apply_checked(self, patches: list[GridPatch]) -> dict[str, str]:
+        """Apply a batch that check_batch accepted (with no state change in between): patch id
+        -> accepted | duplicate (seen before, or earlier in this batch)."""
         results = {}
         for p in patches:
-            if p.patch_id in new and p.patch_id not in self.seen:
+            if p.patch_id not in self.seen:
                 self._add(p)
                 results[p.patch_id] = ACCEPTED
             else:

@@ -1,8 +1,9 @@
 """The shard's durable store: SQLite in WAL mode, one file per shard (DESIGN.md: Delivery).
 
-Holds every applied patch (id, tile, traversal, times, cells, votes) and each tile's compressed
-form with its version. A batch's new patches are written in ONE transaction, committed (fsync'd
-with synchronous=FULL) before the shard acks; on restart the shard replays the stored patches."""
+Holds every applied patch (id, tile, traversal, times, cells as uint32, votes as uint8 where they
+fit, else uint16) and each tile's compressed form with its version. The new patches of a batch, or
+of a group of batches, are written in ONE transaction, committed (fsync'd with synchronous=FULL)
+before the shard acks; on restart the shard replays the stored patches."""
 
 import logging
 import sqlite3
@@ -60,7 +61,7 @@ class ShardStore:
                 p.patch_id, int(p.tile[0]), int(p.tile[1]), p.vehicle, p.traversal,
                 int(p.t_first_ns), int(p.t_last_ns),
                 np.asarray(p.cells, dtype="<u4").tobytes(),
-                np.asarray(p.votes, dtype="<u2").tobytes(),
+                _votes_blob(np.asarray(p.votes)),
             )
             for p in patches
         ]
@@ -73,7 +74,7 @@ class ShardStore:
             c = np.frombuffer(cells, dtype="<u4")
             yield GridPatch(
                 patch_id=pid, vehicle=vehicle, tile=(tx, ty), cells=c,
-                votes=np.frombuffer(votes, dtype="<u2").reshape(len(c), NUM_CLASSES),
+                votes=_votes_from_blob(votes, len(c)),
                 t_first_ns=t0, t_last_ns=t1, traversal=trav,
             )
 
@@ -92,6 +93,19 @@ class ShardStore:
 
     def _transaction(self):
         return _Transaction(self.db)
+
+
+def _votes_blob(votes: np.ndarray) -> bytes:
+    """uint8 counts when they all fit (most patches: 37 % fewer bytes to write and fsync),
+    else little-endian uint16; the length tells which (n * 6 or n * 12 bytes)."""
+    if votes.size and int(votes.max()) > 255:
+        return votes.astype("<u2").tobytes()
+    return votes.astype(np.uint8).tobytes()
+
+
+def _votes_from_blob(blob: bytes, n: int) -> np.ndarray:
+    dtype = np.uint8 if len(blob) == n * NUM_CLASSES else np.dtype("<u2")
+    return np.frombuffer(blob, dtype=dtype).reshape(n, NUM_CLASSES).astype(np.uint16)
 
 
 class _Transaction:

@@ -99,12 +99,36 @@ def test_store_is_in_wal_mode(tmp_path):
     store.close()
 
 
-def test_store_round_trips_patches(tmp_path):
+@pytest.mark.parametrize("votes_per_cell", [6, 255, 256, 65535])
+def test_store_round_trips_patches(tmp_path, votes_per_cell):
     store = ShardStore(tmp_path / "s.sqlite")
-    patches = _batches()[0]
+    patches = patches_from_labels(lane_tile(), traversal="d0", t_ns=0,
+                                  votes_per_cell=votes_per_cell)
     store.save_patches(patches)
     back = list(store.load_patches())
     assert [p.patch_id for p in back] == [p.patch_id for p in patches]
     assert all(np.array_equal(a.votes, b.votes) and np.array_equal(a.cells, b.cells)
                for a, b in zip(back, patches, strict=True))
     store.close()
+
+
+def test_group_commit_acks_each_batch_on_its_own(tmp_path):
+    """Several waiting batches in one transaction: the bad one gets its error, a patch sent
+    in two batches of the group is stored and applied once, the rest is accepted."""
+    durable = _open(tmp_path / "s0.sqlite", owns=lambda t: t == (0, 0))
+    a, b = _batches()[0], _batches()[2]  # tile (0, 0), traversals d0 and d1
+    foreign = _batches()[1]  # tile (1, 0): not owned
+    acks = durable.ingest_many([codec.encode(IngestBatch(a)), b"\xc1",
+                                codec.encode(IngestBatch(foreign)),
+                                codec.encode(IngestBatch(b + a[:1]))])
+    assert set(acks[0].results.values()) == {"accepted"} and acks[0].error is None
+    assert acks[1].error and acks[2].error and "not owned" in acks[2].error
+    assert acks[3].results[a[0].patch_id] == "duplicate"
+    assert {acks[3].results[p.patch_id] for p in b} == {"accepted"}
+    assert durable.store.count_patches() == len(a) + len(b)
+    assert durable.shard.counters["patches_applied"] == len(a) + len(b)
+    durable.store.db.execute("DROP TABLE patches")
+    with pytest.raises(sqlite3.Error):
+        durable.ingest_many([codec.encode(IngestBatch(p)) for p in _batches()[4:8:2]])
+    assert durable.shard.counters["patches_applied"] == len(a) + len(b)
+    durable.store.close()
