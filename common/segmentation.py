@@ -183,7 +183,7 @@ class OnnxSegmenter(Segmenter):
                 hwc = cv2.resize(np.ascontiguousarray(scores.transpose(1, 2, 0)), tuple(out_size),
                                  interpolation=cv2.INTER_LINEAR)
                 scores = hwc.reshape(out_size[1], out_size[0], -1).transpose(2, 0, 1)
-            arg = np.argmax(scores, axis=0)
+            arg = argmax_channels(scores)
             lut = np.zeros(logits.shape[1], np.uint8)  # model classes not in the map -> 0
             for k, v in self.head_map[head].items():
                 if k < len(lut):
@@ -203,6 +203,18 @@ class OnnxSegmenter(Segmenter):
         if labels.shape != (h, w):
             labels = cv2.resize(labels, (w, h), interpolation=cv2.INTER_NEAREST)
         return labels
+
+
+def argmax_channels(scores: np.ndarray) -> np.ndarray:
+    """np.argmax(scores, axis=0) for a few channels, as a running maximum (first maximum wins,
+    like np.argmax): about 4x faster than numpy's strided axis-0 argmax on a 6x360x640 array."""
+    best = scores[0]
+    arg = np.zeros(best.shape, np.uint8 if len(scores) < 256 else np.int64)
+    for c in range(1, len(scores)):
+        better = scores[c] > best
+        best = np.where(better, scores[c], best)
+        arg = np.where(better, arg.dtype.type(c), arg)
+    return arg
 
 
 def get_segmenter(kind: str = "onnx", **kw) -> Segmenter:
