@@ -77,7 +77,7 @@ class _Traversal:
         """(cells, ballot class, votes behind the ballot) per observed cell, cells unique: the
         voted cells, then the unvoted cells of the footprint with none ballots (class 0, 0)."""
         if self._ballots is None or self._footprint_cells != footprint_cells:
-            cells, votes = self._summed()
+            cells, votes = self._rows()
             ballot, weight = _ballot(votes[:, c] for c in range(NUM_CLASSES))
             seen = weight > 0  # an all-zero row is no observation
             cells, ballot, weight = cells[seen], ballot[seen], weight[seen]
@@ -90,21 +90,30 @@ class _Traversal:
             self._footprint_cells = footprint_cells
         return self._ballots
 
-    def _summed(self) -> tuple[np.ndarray, np.ndarray]:
-        """Sum the pieces per cell: unique cells from a hit mask, a lookup table to compact rows,
-        then one row-add per piece (a patch's cells are unique, so no scatter conflicts)."""
+    def _rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """(cells, votes) with each cell once: the pieces concatenated where they share no cell
+        (no sum needed), else summed per cell."""
         if len(self.pieces) > 1:
             hit = np.zeros(CELLS_PER_TILE, dtype=bool)
             for cells, _ in self.pieces:
                 hit[cells] = True
-            unique = np.flatnonzero(hit)
-            lut = np.empty(CELLS_PER_TILE, dtype=np.int32)
-            lut[unique] = np.arange(len(unique), dtype=np.int32)
-            sums = np.zeros((len(unique), NUM_CLASSES), dtype=np.uint32)
-            for cells, votes in self.pieces:
-                sums[lut[cells]] += votes
-            self.pieces = [(unique.astype(np.uint32), sums)]
+            if np.count_nonzero(hit) == sum(len(cells) for cells, _ in self.pieces):
+                self.pieces = [(np.concatenate([cells for cells, _ in self.pieces]),
+                                np.concatenate([votes for _, votes in self.pieces]))]
+            else:
+                self._summed(np.flatnonzero(hit))
         return self.pieces[0]
+
+    def _summed(self, unique: np.ndarray) -> None:
+        """Replace the pieces by their sum per cell (`unique`: every cell of the pieces): a
+        lookup table to compact rows, then one row-add per piece (a patch's cells are unique,
+        so no scatter conflicts)."""
+        lut = np.empty(CELLS_PER_TILE, dtype=np.int32)
+        lut[unique] = np.arange(len(unique), dtype=np.int32)
+        sums = np.zeros((len(unique), NUM_CLASSES), dtype=np.uint32)
+        for cells, votes in self.pieces:
+            sums[lut[cells]] += votes
+        self.pieces = [(unique.astype(np.uint32), sums)]
 
 
 def _unvoted_footprint(cells: np.ndarray, size: int) -> np.ndarray:
