@@ -162,6 +162,7 @@ class MergerConfig:
     max_batch_cells: int = 4_000_000
     sqlite_synchronous: str = "FULL"  # FULL: the ack survives power loss, not just kill -9
     ingest_queue: int = 256
+    ingest_group: int = 32  # waiting ingest queries stored in one transaction (group commit)
 
 
 @dataclass(frozen=True)
