@@ -9,32 +9,35 @@ Evidence rule (DESIGN.md: Map updating), per cell:
   1. Each traversal (drive) that OBSERVED the cell casts ONE ballot. Where it has votes, the
      ballot is the class with the most of its votes there (ties go to the higher class: paint
      over road); patches of one traversal are summed first, so a car that idles or passes twice
-     still votes once. Vehicles send votes only for labelled pixels (road and paint), never for
+     still votes once. Vehicles send votes only for labelled pixels (road and paint), not for
      ground they saw as nothing (class 0: islands, verges, hatched areas), so the shard
      reconstructs a traversal's footprint: its voted cells in the tile, closed (dilate, then
-     erode) with a FOOTPRINT_CELLS square (0.9 m). A cell inside that
-     footprint without votes of the traversal lay between cells it saw, so it was in view and
-     seen as nothing: it casts a "none" ballot (class 0, no votes behind it). Without this,
-     paint removed from ground that is now nothing would never get a ballot against it and
-     would stay in the map for ever.
+     erode) with a FOOTPRINT_CELLS square (0.9 m). A cell inside that footprint without votes
+     of the traversal lay between cells it saw, so it was in view but showed no paint: it casts
+     a "no paint" ballot (UNSEEN_PAINT, no votes behind it). Without it, paint removed from
+     ground that is now nothing would never get a ballot against it and stay in the map.
   2. Only the ballots of the WINDOW (3) most recent traversals that observed the cell count.
      Traversals are ordered by their own time in the tile (the earliest t_first_ns of their
      patches there), ties by traversal id: never by arrival.
   3. The label: paint (its class with the most ballots in the window; ties go to the class
      whose ballots carry more votes, then to the lower class) wins when it has more ballots than
-     road and none together (ties again to more votes, then to the ground); otherwise road or
-     none, whichever has more ballots (ties to more votes: road). Pooling the ground means that
-     road and none ballots, both "no paint here", never split the vote against old paint. A
-     label needs its ballots to carry at least MIN_VOTES votes, else the cell is unknown (0).
-Consequences: after any number (50) of traversals of the old paint, a repaint wins as soon as 2
-of the last 3 traversals that saw the cell saw the new state (road, other paint or nothing): the
-map follows within 2 traversals that pass the cell, within 3 when one of them misses it. One
-noisy traversal is 1 ballot against the 2 before it and never flips a cell they agree on (two
-noisy traversals in a row can: the price of following in 2). A map of one traversal is the
-paper's plain vote argmax (of two, ties go to the votes behind each ballot). Everything is
-integer arithmetic and a deterministic morphology over the set of applied patches, so the map
-(and its digest) is independent of arrival order, crashes and replays. Memory grows with the
-stored traversals of a tile (compaction of traversals outside every cell's window is future work).
+     the ground ballots (road, none and no-paint together; ties to more votes, then to the
+     ground). Pooling means that road, none and no-paint ballots, all "no paint here", never
+     split the vote against old paint. Otherwise the cell is road or none, whichever has more
+     voted ballots (ties to more votes: road); no-paint ballots take no side there, as a gap
+     in a traversal's votes (a car in front, sparse far pixels) is no evidence against road.
+     A label needs its ballots to carry at least MIN_VOTES votes, else the cell is unknown (0).
+Consequences: after any number (50) of traversals of the old paint, new paint (or its removal:
+road, other paint or nothing) wins as soon as 2 of the last 3 traversals that saw the cell saw
+it: the map follows within 2 traversals that pass the cell, within 3 when one of them misses
+it. Road that becomes nothing follows once no road ballot is left in the window (3 traversals;
+2 where vehicles send class-0 votes for what they see as nothing). One noisy traversal is 1
+ballot against the 2 before it and never flips a cell they agree on (two noisy traversals in a
+row can: the price of following in 2). A map of one traversal is the paper's plain vote argmax
+(of two, ties go to the votes behind each ballot). Everything is integer arithmetic and a
+deterministic morphology over the set of applied patches, so the map (and its digest) is
+independent of arrival order, crashes and replays. Memory grows with the stored traversals of a
+tile (compaction of traversals outside every cell's window is future work).
 """
 
 import hashlib
@@ -55,6 +58,8 @@ MIN_VOTES = 2
 FOOTPRINT_CELLS = 9  # closing square of a traversal's voted cells (module docstring, 1.)
 VOTE_CAP = 1 << 24  # per traversal and cell: window sums (window < 256) stay below 2^32
 BALLOT = np.uint64(1 << 32)
+UNSEEN_PAINT = NUM_CLASSES  # ballot slot of "in the footprint, no votes": no paint seen here
+SLOTS = NUM_CLASSES + 1
 
 TileId = tuple[int, int]
 
@@ -74,8 +79,8 @@ class _Traversal:
         self._ballots = None
 
     def ballots(self, footprint_cells: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(cells, ballot class, votes behind the ballot) per observed cell, cells unique: the
-        voted cells, then the unvoted cells of the footprint with none ballots (class 0, 0)."""
+        """(cells, ballot slot, votes behind the ballot) per observed cell, cells unique: the
+        voted cells (slot = class), then the unvoted cells of the footprint (UNSEEN_PAINT, 0)."""
         if self._ballots is None or self._footprint_cells != footprint_cells:
             cells, votes = self._rows()
             ballot, weight = _ballot(votes[:, c] for c in range(NUM_CLASSES))
@@ -84,7 +89,7 @@ class _Traversal:
             none = _unvoted_footprint(cells, footprint_cells)
             self._ballots = (
                 np.concatenate([cells, none]),
-                np.concatenate([ballot, np.zeros(len(none), np.uint8)]),
+                np.concatenate([ballot, np.full(len(none), UNSEEN_PAINT, np.uint8)]),
                 np.concatenate([weight, np.zeros(len(none), np.uint32)]),
             )
             self._footprint_cells = footprint_cells
@@ -312,7 +317,7 @@ def tile_labels(
     observations once it has `window` of them, so no per-cell sort is needed."""
     # per (cell, class): ballots in the high 32 bits, the votes behind them in the low 32 bits,
     # so one integer add counts both and an argmax ranks by ballots, then votes
-    packed = np.zeros(CELLS_PER_TILE * NUM_CLASSES, dtype=np.uint64)
+    packed = np.zeros(CELLS_PER_TILE * SLOTS, dtype=np.uint64)
     seen = np.zeros(CELLS_PER_TILE, dtype=np.uint16)  # observations taken per cell
     # 2. most recent first, by the traversals' own time then id (arrival order never matters)
     order = sorted(traversals, key=lambda kv: (kv[1].t_first_ns, kv[0]), reverse=True)
@@ -322,16 +327,16 @@ def tile_labels(
             fresh = seen[cells] < window
             cells, ballot, weight = cells[fresh], ballot[fresh], weight[fresh]
         seen[cells] += 1
-        packed[cells.astype(np.intp) * NUM_CLASSES + ballot] += weight.astype(np.uint64) + BALLOT
+        packed[cells.astype(np.intp) * SLOTS + ballot] += weight.astype(np.uint64) + BALLOT
     observed = np.flatnonzero(seen)
-    scores = packed.reshape(-1, NUM_CLASSES)[observed]
+    scores = packed.reshape(-1, SLOTS)[observed]
     rows = np.arange(len(observed))
     low = np.uint64(BALLOT - 1)
-    # 3. paint (its best class) against the pooled ground ballots (road + none), then road
-    # against none; argmax ranks by ballots, then votes, then the lower class
-    paint = np.argmax(scores[:, 2:], axis=1) + 2
+    # 3. paint (its best class) against the pooled ground ballots (road + none + no paint),
+    # then road against none; argmax ranks by ballots, then votes, then the lower class
+    paint = np.argmax(scores[:, 2:NUM_CLASSES], axis=1) + 2
     p_score = scores[rows, paint]
-    ground = scores[:, 0] + scores[:, 1]  # ballots and votes add in their own bits
+    ground = scores[:, 0] + scores[:, 1] + scores[:, UNSEEN_PAINT]  # ballots, votes: own bits
     p_ballots, g_ballots = p_score >> np.uint64(32), ground >> np.uint64(32)
     more_votes = (p_score & low) > (ground & low)
     paint_wins = (p_ballots > g_ballots) | ((p_ballots == g_ballots) & more_votes)
