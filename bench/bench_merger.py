@@ -194,7 +194,11 @@ def ingest_rate(n_shards: int, batches: list[IngestBatch], window: int = 8) -> d
             for p in reversed(procs):
                 p.terminate()
             for p in procs:
-                p.wait(15)
+                try:
+                    p.wait(15)
+                except subprocess.TimeoutExpired:  # never leave a process behind
+                    p.kill()
+                    p.wait(15)
 
 
 def _wait_shards(session, n_shards: int, timeout_s: float = 30.0) -> None:
