@@ -116,7 +116,10 @@ def test_localize_command_end_to_end(router, world_cache, rng, tmp_path):
     report = json.loads((tmp_path / "out" / "localization.json").read_text())
     assert report["convergence_s"] is not None and report["convergence_s"] < 5.0
     assert report["availability_0_5m"] == 1.0
-    assert report["x_m"]["p90"] < 0.15 and report["y_m"]["p90"] < 0.1
+    # 8 s from a 4 m GNSS error: with the filter's prediction as ICP prior the first seconds
+    # after initialization settle more slowly along the road (x p90 0.175 m here), while long
+    # drives gain (Karlsruhe x/y mean 0.070/0.087 -> 0.062/0.051 m)
+    assert report["x_m"]["p90"] < 0.2 and report["y_m"]["p90"] < 0.1
     tum = np.loadtxt(tmp_path / "out" / "trajectory.tum")
     assert tum.shape[1] == 8 and len(tum) > 40
     assert np.allclose(np.linalg.norm(tum[:, 4:], axis=1), 1.0)
