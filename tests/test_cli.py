@@ -32,3 +32,14 @@ def test_bad_setting_is_one_line_and_exit_1():
     res = roadmap("dump-config", "--set", "grid.shards=none")
     assert res.returncode == 1
     assert res.stderr.strip().count("\n") == 0 and "grid.shards" in res.stderr
+
+
+def test_deploy_advanced_config_lists_the_current_defaults():
+    """deploy/config/advanced.toml is generated; regenerate it when a setting changes:
+    python -m services.demo.configdoc > deploy/config/advanced.toml"""
+    from pathlib import Path
+
+    from services.demo.configdoc import render
+
+    path = Path(__file__).resolve().parents[1] / "deploy" / "config" / "advanced.toml"
+    assert path.read_text() == render(), "stale: python -m services.demo.configdoc > " + str(path)
