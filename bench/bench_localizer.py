@@ -90,7 +90,8 @@ def run(quick: bool = False) -> dict:
     match_ms, update_ms, predict_ms, frame_ms = [], [], [], []
     loc.icp = _Timed(loc.icp, "register", match_ms)
     ekf = loc.ekf
-    loc.ekf = _Timed(_Timed(ekf, "update_pose", update_ms), "predict", predict_ms)
+    update = "update_posterior" if loc.use_prior else "update_pose"  # the ICP pose's update
+    loc.ekf = _Timed(_Timed(ekf, update, update_ms), "predict", predict_ms)
     t_frame = {}
 
     def points(i):
