@@ -476,7 +476,28 @@ class DemoRun:
         pos = np.hypot(errs["x_m"], errs["y_m"])
         figures.trajectory_by_error(raw, mosaic.to_cells, truth[:, :2], est[:, 1:3], pos,
                                     self.out / "trajectory.png")
-        figures.error_histograms(errs, self.out / "errors.png")
+        scored = self._scored_frames(est[:, 0], log.streams["frame_t_ns"])
+        figures.error_histograms({k: v[scored] for k, v in errs.items()}, self.out / "errors.png")
+
+    def _scored_frames(self, t_est_s: np.ndarray, frame_t_ns: np.ndarray) -> np.ndarray:
+        """The estimates the report's statistics are taken over: on-map frames after
+        convergence (localizer/diagnostics.jsonl, localization.json); all when unknown."""
+        loc_dir = self.out / "localizer"
+        try:
+            rows = [json.loads(line) for line in (loc_dir / "diagnostics.jsonl").open()]
+            conv = json.loads((loc_dir / "localization.json").read_text())["convergence_s"]
+        except (OSError, ValueError, KeyError):
+            return np.ones(len(t_est_s), dtype=bool)
+        t_diag = np.array([r["t_ns"] for r in rows], dtype=np.int64)
+        on_map = np.array([bool(r.get("on_map", True)) for r in rows])
+        if len(rows) == 0:
+            return np.ones(len(t_est_s), dtype=bool)
+        # nearest diagnostics row of each estimate (TUM times are float seconds)
+        rel = t_est_s - int(t_diag[0]) * 1e-9
+        k = np.clip(np.searchsorted((t_diag - t_diag[0]) * 1e-9, rel - 1e-3), 0, len(rows) - 1)
+        t0 = (int(t_diag[0]) - int(frame_t_ns[0])) * 1e-9
+        after = rel + t0 >= conv - 1e-3 if conv is not None else np.zeros(len(k), dtype=bool)
+        return on_map[k] & after
 
 
 def _truth_xy(log_dir: Path) -> np.ndarray:
@@ -532,10 +553,11 @@ def format_table(report: dict) -> str:
         lines.append(f"{label:22s}{_f(ours.get('mean')):>10s}{_f(ours.get('p90')):>10s}")
     if "frames_on_map" in loc:
         every = loc.get("all_frames") or {}
+        x_all, y_all = ((every.get(k) or {}).get("mean") for k in ("x_m", "y_m"))
         lines.append(
             f"  (on-map frames: {loc['frames_on_map']} of {loc.get('frames')}; all frames: x "
-            f"{_f((every.get('x_m') or {}).get('mean'))}, y {_f((every.get('y_m') or {}).get('mean'))}"
-            f" m, availability {_f(every.get('availability_0_5m'), '{:.2f}')})"
+            f"{_f(x_all)}, y {_f(y_all)} m, availability "
+            f"{_f(every.get('availability_0_5m'), '{:.2f}')})"
         )
     lines.append(f"{'map size [KB/km]':22s}{m['kb_per_km']:>10.1f}{'':10s}"
                  f"{ev.PAPER['kb_per_km']:>12.1f}"

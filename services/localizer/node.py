@@ -81,7 +81,9 @@ def localize_log(log: DriveLog, cfg, session, vehicle: str, out: Path) -> dict:
                         )
                     )
                 )
-            diag_file.write(json.dumps(_diag_row(i, est, streams), separators=(",", ":")) + "\n")
+            row = _diag_row(i, est, streams)
+            row["on_map"] = on_map[-1]
+            diag_file.write(json.dumps(row, separators=(",", ":")) + "\n")
 
         estimates = replay(loc, streams, frame_points, on_estimate)
     finally:
