@@ -1,5 +1,10 @@
-"""EKF over the planar pose (x, y, yaw) in the world frame plus the wheel-odometry scale factor
-and the gyro bias (filterpy's ExtendedKalmanFilter).
+"""EKF over the planar pose (x, y, yaw) in the world frame plus the wheel-odometry scale factor,
+the gyro bias and the camera's yaw mounting error (filterpy's ExtendedKalmanFilter).
+
+The pose's yaw is the heading the camera sees (what ICP measures); the car moves along that
+heading minus the camera yaw offset. A miscalibrated camera (0.2 deg is common) thus shows as
+ICP lateral corrections that keep pointing one way as the car drives, and the filter learns the
+offset from them; `vehicle_pose` is the car's own heading.
 
 Predict from wheel speed (m/s, times the estimated scale) and gyro yaw rate (rad/s); update
 with an ICP pose (its 3x3
@@ -32,7 +37,7 @@ class _PlanarEKF(ExtendedKalmanFilter):
         v, w, dt = u
         x = self.x.reshape(-1)
         w = w - x[4]
-        yaw_mid = x[2] + 0.5 * w * dt
+        yaw_mid = x[2] - x[5] + 0.5 * w * dt
         d = x[3] * v * dt
         x_new = np.array(
             [
@@ -41,6 +46,7 @@ class _PlanarEKF(ExtendedKalmanFilter):
                 float(wrap_angle(x[2] + w * dt)),
                 x[3],
                 x[4],
+                x[5],
             ]
         )
         self.x = x_new.reshape(self.x.shape)
@@ -62,6 +68,7 @@ class PoseFilter:
         scale_walk_per_s: float = 1e-3,
         gyro_bias_sigma0_rps: float = math.radians(0.1),
         gyro_bias_walk_rps: float = math.radians(0.002),
+        camera_yaw_sigma0_rad: float = math.radians(0.3),
         inflate_after: int = 3,
         inflate_m: float = 0.15,
         inflate_yaw_rad: float = math.radians(0.3),
@@ -82,8 +89,9 @@ class PoseFilter:
         self.pose_rejections = 0
         self.gnss_rejections = 0
         self.gyro_bias_sigma0, self.gyro_bias_walk = gyro_bias_sigma0_rps, gyro_bias_walk_rps
-        self.ekf = _PlanarEKF(dim_x=5, dim_z=3)
-        self.ekf.x = np.array([[0.0], [0.0], [0.0], [1.0], [0.0]])
+        self.camera_yaw_sigma0 = camera_yaw_sigma0_rad
+        self.ekf = _PlanarEKF(dim_x=6, dim_z=3)
+        self.ekf.x = np.array([[0.0], [0.0], [0.0], [1.0], [0.0], [0.0]])
         self.initialized = False
         self.rejections = 0
         self.last_nis = 0.0
@@ -93,18 +101,29 @@ class PoseFilter:
     def reset(self, pose: np.ndarray, cov: np.ndarray, scale: float | None = None) -> None:
         """Start from a pose and its 3x3 covariance; the odometry scale is kept across resets."""
         scale = float(self.ekf.x[3, 0]) if scale is None else float(scale)
-        bias = float(self.ekf.x[4, 0])
-        self.ekf.x = np.array([*np.asarray(pose, dtype=float)[:3], scale, bias]).reshape(5, 1)
-        self.ekf.P = np.zeros((5, 5))
+        bias, cam = float(self.ekf.x[4, 0]), float(self.ekf.x[5, 0])
+        self.ekf.x = np.array([*np.asarray(pose, dtype=float)[:3], scale, bias, cam]).reshape(6, 1)
+        self.ekf.P = np.zeros((6, 6))
         self.ekf.P[:3, :3] = np.asarray(cov, dtype=float)
         self.ekf.P[3, 3] = self.scale_sigma0**2
         self.ekf.P[4, 4] = self.gyro_bias_sigma0**2
+        self.ekf.P[5, 5] = self.camera_yaw_sigma0**2
         self.initialized = True
         self.rejections = 0
 
     @property
     def pose(self) -> np.ndarray:
         return self.ekf.x.reshape(-1)[:3].copy()
+
+    @property
+    def vehicle_pose(self) -> np.ndarray:
+        """(x, y, yaw) of the car: the camera-frame heading minus the camera yaw offset."""
+        x = self.ekf.x.reshape(-1)
+        return np.array([x[0], x[1], float(wrap_angle(x[2] - x[5]))])
+
+    @property
+    def camera_yaw_rad(self) -> float:
+        return float(self.ekf.x[5, 0])
 
     @property
     def cov(self) -> np.ndarray:
@@ -135,20 +154,21 @@ class PoseFilter:
     def predict(self, speed_mps: float, yaw_rate_rps: float, dt_s: float) -> None:
         if not self.initialized or dt_s <= 0:
             return
-        _, _, yaw, k, b = self.ekf.x.reshape(-1)
-        yaw_mid = yaw + 0.5 * (yaw_rate_rps - b) * dt_s
+        _, _, yaw, k, b, cam = self.ekf.x.reshape(-1)
+        yaw_mid = yaw - cam + 0.5 * (yaw_rate_rps - b) * dt_s
         c, s = math.cos(yaw_mid), math.sin(yaw_mid)
         d = k * speed_mps * dt_s
         h = 0.5 * dt_s
-        # Jacobians of the motion model w.r.t. the state (x, y, yaw, scale, gyro bias) and the
-        # inputs (v, w)
+        # Jacobians of the motion model w.r.t. the state (x, y, yaw, scale, gyro bias, camera
+        # yaw) and the inputs (v, w)
         self.ekf.F = np.array(
             [
-                [1.0, 0.0, -d * s, speed_mps * dt_s * c, d * s * h],
-                [0.0, 1.0, d * c, speed_mps * dt_s * s, -d * c * h],
-                [0.0, 0.0, 1.0, 0.0, -dt_s],
-                [0.0, 0.0, 0.0, 1.0, 0.0],
-                [0.0, 0.0, 0.0, 0.0, 1.0],
+                [1.0, 0.0, -d * s, speed_mps * dt_s * c, d * s * h, d * s],
+                [0.0, 1.0, d * c, speed_mps * dt_s * s, -d * c * h, -d * c],
+                [0.0, 0.0, 1.0, 0.0, -dt_s, 0.0],
+                [0.0, 0.0, 0.0, 1.0, 0.0, 0.0],
+                [0.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+                [0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
             ]
         )
         G = np.array(
@@ -158,18 +178,20 @@ class PoseFilter:
                 [0.0, dt_s],
                 [0.0, 0.0],
                 [0.0, 0.0],
+                [0.0, 0.0],
             ]
         )
         sv = self.speed_sigma_rel * abs(speed_mps) + self.speed_sigma_mps
         Q = G @ np.diag([sv**2, self.yaw_rate_sigma_rps**2]) @ G.T
         Q[3, 3] = self.scale_walk_per_s**2 * dt_s
         Q[4, 4] = self.gyro_bias_walk**2 * dt_s
+        Q[5, 5] = math.radians(0.001) ** 2 * dt_s  # the mount may settle, slowly
         self.ekf.Q = Q
         self.ekf.predict(u=(speed_mps, yaw_rate_rps, dt_s))
 
     def update_pose(self, pose: np.ndarray, cov: np.ndarray) -> bool:
         """ICP pose measurement; False if gated out."""
-        return self._update(np.asarray(pose, float), np.eye(3, 5), np.asarray(cov, float))
+        return self._update(np.asarray(pose, float), np.eye(3, 6), np.asarray(cov, float))
 
     def update_posterior(
         self, pose: np.ndarray, information: np.ndarray, gate_chi2: float = 16.27
@@ -209,7 +231,7 @@ class PoseFilter:
 
     def update_position(self, xy: np.ndarray, sigma_m: float) -> bool:
         """GNSS position measurement (isotropic sigma); False if gated out."""
-        H = np.eye(2, 5)
+        H = np.eye(2, 6)
         return self._update(np.asarray(xy, float), H, np.eye(2) * sigma_m**2)
 
     def _inflate(self) -> None:

@@ -149,7 +149,7 @@ class Localizer:
             self.calibration[: len(result.attitude)] += self.calibration_rate * result.attitude
         diag = self._frame_diag(result, accepted)
         self._watch_integrity(result, accepted)
-        return Estimate(t_ns, self.ekf.pose, self.ekf.cov, self.ekf.ok, diag)
+        return Estimate(t_ns, self.ekf.vehicle_pose, self.ekf.cov, self.ekf.ok, diag)
 
     # -- steps ------------------------------------------------------------------------------
 
@@ -278,6 +278,7 @@ class Localizer:
             "sigma_m": round(self.ekf.position_sigma_m, 4),
             "odom_scale": round(self.ekf.odometry_scale, 5),
             "gyro_bias_dps": round(math.degrees(self.ekf.gyro_bias_rps), 4),
+            "camera_yaw_deg": round(math.degrees(self.ekf.camera_yaw_rad), 4),
             "calibration_deg": [round(math.degrees(c), 4) for c in self.calibration],
         }
         if res is not None:

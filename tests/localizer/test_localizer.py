@@ -123,3 +123,25 @@ def test_frames_without_points_do_not_force_a_reinitialization(road_cache, rng):
         loc.predict(t, 10.0, 0.0)
         loc.process_frame(t, np.zeros((0, 2)), np.zeros(0, np.uint8))
     assert loc.ekf.initialized and loc.inits == 0
+
+
+def test_ekf_learns_the_camera_yaw_offset(rng):
+    """ICP sees the world through a camera mounted 0.2 deg off: its yaw is off by that much while
+    the car moves along its own heading; the filter separates the two."""
+    offset = math.radians(0.2)
+    f = PoseFilter()
+    true = np.array([0.0, 0.0, 0.3])
+    f.reset(true + [0.0, 0.0, offset], np.diag([0.01, 0.01, math.radians(0.5) ** 2]))
+    for k in range(600):  # 60 s at 10 m/s, a gentle curve
+        w = 0.02 * math.sin(k / 100.0)
+        f.predict(10.0, w, 0.1)
+        true = true + [
+            math.cos(true[2] + 0.05 * w) * 1.0,
+            math.sin(true[2] + 0.05 * w) * 1.0,
+            w * 0.1,
+        ]
+        meas = true + [0.0, 0.0, offset] + rng.normal(0, [0.03, 0.03, math.radians(0.05)])
+        f.update_pose(meas, np.diag([0.03**2, 0.03**2, math.radians(0.05) ** 2]))
+    assert abs(f.camera_yaw_rad - offset) < math.radians(0.05)
+    assert abs(math.remainder(f.vehicle_pose[2] - true[2], 2 * math.pi)) < math.radians(0.05)
+    assert np.hypot(*(f.vehicle_pose[:2] - true[:2])) < 0.05
