@@ -119,7 +119,9 @@ class Icp:
         self.cov_scale = cov_scale  # neighbouring points are correlated: n points != n samples
         self.point_sigma_m = point_sigma_m  # distance noise of one point at the probe poses
         self.probe_m = probe_m
-        self.attitude_prior = (point_sigma_m / attitude_sigma_rad) ** 2
+        # the points are correlated (cov_scale of them count as one): weigh the prior alike, or
+        # 700 points of one crosswalk drag the pitch degrees away
+        self.attitude_prior = (point_sigma_m / attitude_sigma_rad) ** 2 * cov_scale
         self.min_sigma_m, self.min_sigma_yaw_rad = min_sigma_m, min_sigma_yaw_rad
         self.min_points = min_points
         self.refine_iterations = refine_iterations
