@@ -39,7 +39,7 @@ def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
                  max_frames: int = 6000, cache_dir: Path | None = None):
     """(frames (N, H, W, 3) uint8, labels (N, H, W) uint8) from procedural towns; cached by seed."""
     cache_dir = cache_dir or Path(tempfile.gettempdir()) / "roadmap-segtrain"
-    cache = cache_dir / f"towns-v3-s{seed}-{input_size[0]}x{input_size[1]}.npz"
+    cache = cache_dir / f"towns-v4-s{seed}-{input_size[0]}x{input_size[1]}.npz"
     if cache.is_file():
         logger.info("training frames from cache %s", cache)
         with np.load(cache) as z:
@@ -82,6 +82,7 @@ def _sim_towns(seed, input_size, budget_s, max_frames):
         for _ in range(4):
             camera = random_camera(rng)
             renderer = FrameRenderer(world, camera, seed=int(rng.integers(2**31)))
+            renderer.look.curb = rng.random() < 0.9  # curbs: light strips that are not paint
             for _ in range(6):
                 pose = random_pose(world, rng)
                 rgb, lab = renderer.render(pose, camera.T_vehicle_camera,
@@ -134,7 +135,7 @@ def restyled(world, rng):
 
     from common.classes import Cls
 
-    p_no_edge = rng.uniform(0.2, 0.9)
+    p_no_edge = rng.uniform(0.4, 1.0)
     shoulder_cut = rng.uniform(0.0, 0.55) if rng.random() < 0.75 else 0.0
     p_thick = rng.uniform(0.1, 0.6) if rng.random() < 0.7 else 0.0
     thin_w = rng.uniform(0.10, 0.16)

@@ -27,7 +27,7 @@ def test_packaged_model_labels_have_image_shape_and_our_classes(rng):
 @needs_model
 def test_packaged_model_describes_its_input_in_metadata():
     seg = OnnxSegmenter()
-    assert seg.input_size == (320, 176)
+    assert seg.input_size == (640, 360)
     assert seg.scale == pytest.approx(1.0 / 255.0)
     assert seg.name == "roadseg"
 
