@@ -139,7 +139,8 @@ class Uploader(threading.Thread):
         self.mapping_done = threading.Event()
         self.wake = threading.Event()
         self.alive: set[str] = set()
-        self.sent = self.errors = 0
+        self.sent = self.errors = 0  # send attempts of this run (retries included)
+        self.sent_ids: set[str] = set()
         self._cache: dict[str, GridPatch] = {}
         self._live = session.liveliness().declare_subscriber(
             keys.alive_all("merger"), self._on_alive, history=True
@@ -189,6 +190,7 @@ class Uploader(threading.Thread):
     def _send(self, shard: int, patches: list[GridPatch]) -> bool:
         payload = codec.encode(IngestBatch(patches))
         self.sent += len(patches)
+        self.sent_ids.update(p.patch_id for p in patches)
         replies = self.session.get(
             keys.ingest(shard), payload=payload, timeout=self.cfg.vehicle.upload_timeout_s
         )
@@ -325,7 +327,9 @@ def main(args, cfg: RoadmapConfig) -> int:
         "vehicle": vehicle,
         "traversal": log.meta.traversal,
         "frames": mapper.frames_committed,
-        "patches_sent": uploader.sent,
+        # distinct patches that left the vehicle, also in runs before a restart (acked ones)
+        "patches_sent": len(uploader.sent_ids | outbox.acked_ids()),
+        "send_attempts": uploader.sent,
         "patches_acked": counts["acked"],
         "patches_accepted": counts["accepted"],
         "duplicates": counts["duplicates"],

@@ -114,6 +114,10 @@ class Outbox:
             raise ValueError(f"patch id {patch_id!r} is not a safe file name")
         return self.dir / (patch_id + SUFFIX)
 
+    def acked_ids(self) -> set[str]:
+        """Ids of every patch a shard has acked (this run or an earlier one)."""
+        return set(self._acked)
+
     def _read_acked(self) -> dict[str, str]:
         acked: dict[str, str] = {}
         try:
