@@ -35,19 +35,16 @@ def _stats(ms: list[float]) -> dict:
     }
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="bench_render.json")
-    ap.add_argument("--frames", type=int, default=200)
-    ap.add_argument("--world", default="town")
-    ap.add_argument("--sim-km", type=float, default=2.0, help="label-only drive length")
-    args = ap.parse_args()
-
-    world = load_world(args.world, seed=0)
+def run(quick: bool = False, frames: int | None = None, world_spec: str = "town",
+        sim_km: float | None = None) -> dict:
+    """Renderer timings (ms per frame, wall and CPU) and label-only simulation speed."""
+    frames = frames or (40 if quick else 200)
+    sim_km = sim_km if sim_km is not None else (0.3 if quick else 2.0)
+    world = load_world(world_spec, seed=0)
     camera = camera_from_config(CameraConfig())
     rng = np.random.default_rng(0)
     traj = motion.drive(world.routes[0], rng)
-    t = np.arange(0.0, traj.duration_s, 0.1)[: args.frames + 10]
+    t = np.arange(0.0, traj.duration_s, 0.1)[: frames + 10]
     poses = traj.poses(t)
     others = _other_vehicles(traj, rng)
     shake = sensors.vibration(len(t), sensors.PROFILES["mapping"], rng)
@@ -68,11 +65,11 @@ def main() -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        path = simulate_drives(world, tmp, images=False, max_km=args.sim_km)[0]
+        path = simulate_drives(world, tmp, images=False, max_km=sim_km)[0]
         sim_s = time.perf_counter() - t0
-        frames = len(list((Path(path) / "labels").glob("*.png")))
+        n_frames = len(list((Path(path) / "labels").glob("*.png")))
 
-    report = {
+    return {
         "cores": os.cpu_count(),
         "python": platform.python_version(),
         "world": world.name,
@@ -85,12 +82,24 @@ def main() -> int:
             "render_labels_only": _stats(lab_cpu),
         },
         "label_only_sim": {
-            "km": args.sim_km,
-            "frames": frames,
+            "km": sim_km,
+            "frames": n_frames,
             "wall_s": round(sim_s, 2),
-            "frames_per_s": round(frames / sim_s, 1),
+            "frames_per_s": round(n_frames / sim_s, 1),
         },
     }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="bench_render.json")
+    ap.add_argument("--frames", type=int, default=200)
+    ap.add_argument("--world", default="town")
+    ap.add_argument("--sim-km", type=float, default=2.0, help="label-only drive length")
+    ap.add_argument("--quick", action="store_true")
+    args = ap.parse_args()
+    report = run(args.quick, args.frames if not args.quick else None, args.world,
+                 args.sim_km if not args.quick else None)
     Path(args.out).write_text(json.dumps(report, indent=1))
     sys.stdout.write(json.dumps(report, indent=1) + "\n")
     return 0
