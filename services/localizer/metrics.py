@@ -70,39 +70,6 @@ def localization_metrics(
     est = np.asarray(est, dtype=float)
     true = np.asarray(true, dtype=float)
     valid_truth = np.all(np.isfinite(true), axis=1)
-    if on_map is not None:
-        mapped = np.asarray(on_map, dtype=bool)[valid_truth]
-        out = localization_metrics(t_ns, est, true, threshold_m=threshold_m, hold_s=hold_s)
-        on = _select(t_ns, est, true, valid_truth, mapped, threshold_m, hold_s)
-        on["frames"], on["frames_on_map"] = out["frames"], int(mapped.sum())
-        on["all_frames"] = {k: out[k] for k in _STATS + ("availability_0_5m",)}
-        return on
-    est, true, t_s = est[valid_truth], true[valid_truth], t_s[valid_truth]
-    err = pose_errors(est, true)
-    pos = np.where(np.isfinite(err["position_m"]), err["position_m"], np.inf)
-    k = convergence_index(pos, t_s, threshold_m, hold_s) if len(pos) else None
-    out = {
-        "frames": int(len(t_s)),
-        "convergence_s": None if k is None else float(t_s[k]),
-        "availability_0_5m": 0.0,
-    }
-    after = slice(k if k is not None else len(t_s), None)
-    sel = np.isfinite(pos[after])
-    for name in _STATS:
-        out[name] = _stats(err[name][after][sel])
-    n_after = len(pos[after])
-    if n_after:
-        out["availability_0_5m"] = float(np.mean(pos[after] < threshold_m))
-    out["frames_after_convergence"] = int(n_after)
-    return out
-
-
-_STATS = ("lateral_m", "longitudinal_m", "x_m", "y_m", "yaw_deg")
-
-
-def _select(t_ns, est, true, valid_truth, mapped, threshold_m, hold_s) -> dict:
-    """Metrics over the on-map frames after convergence (convergence found on all frames)."""
-    t_s = (np.asarray(t_ns, dtype=np.int64) - int(t_ns[0])) * 1e-9
     est, true, t_s = est[valid_truth], true[valid_truth], t_s[valid_truth]
     err = pose_errors(est, true)
     pos = np.where(np.isfinite(err["position_m"]), err["position_m"], np.inf)
@@ -110,13 +77,33 @@ def _select(t_ns, est, true, valid_truth, mapped, threshold_m, hold_s) -> dict:
     after = np.zeros(len(pos), dtype=bool)
     if k is not None:
         after[k:] = True
-    use = after & mapped
-    out = {"convergence_s": None if k is None else float(t_s[k])}
+    out = {
+        "frames": int(len(t_s)),
+        "convergence_s": None if k is None else float(t_s[k]),
+        **_over(err, pos, after, threshold_m),
+        "frames_after_convergence": int(after.sum()),
+    }
+    if on_map is None:
+        return out
+    mapped = np.asarray(on_map, dtype=bool)[valid_truth]
+    return {
+        **out,
+        **_over(err, pos, after & mapped, threshold_m),
+        "frames_on_map": int(mapped.sum()),
+        "all_frames": {key: out[key] for key in _STATS + ("availability_0_5m",)},
+    }
+
+
+_STATS = ("lateral_m", "longitudinal_m", "x_m", "y_m", "yaw_deg")
+
+
+def _over(err: dict, pos: np.ndarray, use: np.ndarray, threshold_m: float) -> dict:
+    """Availability and error statistics over the frames in `use` (a frame without an estimate
+    counts as unavailable and is left out of the statistics)."""
+    out = {"availability_0_5m": float(np.mean(pos[use] < threshold_m)) if use.any() else 0.0}
     fin = use & np.isfinite(pos)
-    out["availability_0_5m"] = float(np.mean(pos[use] < threshold_m)) if use.any() else 0.0
     for name in _STATS:
         out[name] = _stats(err[name][fin])
-    out["frames_after_convergence"] = int(after.sum())
     return out
 
 
