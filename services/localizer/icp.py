@@ -42,6 +42,19 @@ class IcpResult:
         return self.inliers / max(self.points, 1)
 
 
+def _jacobian(dx, dy, rx, ry, c, s, jac_v) -> np.ndarray:
+    """Rows d residual / d (x, y, yaw[, attitude...]) of a residual whose gradient w.r.t. the
+    world point is (dx, dy): (dx, dy)^T [[1, 0, -ry], [0, 1, rx]], plus (dx, dy)^T R d point /
+    d attitude for jac_v (N, 2, k); (rx, ry) is the point rotated by the pose's yaw (c, s)."""
+    cols = [dx, dy, rx * dy - ry * dx]
+    if jac_v is not None:
+        for k in range(jac_v.shape[2]):
+            jx = c * jac_v[:, 0, k] - s * jac_v[:, 1, k]
+            jy = s * jac_v[:, 0, k] + c * jac_v[:, 1, k]
+            cols.append(dx * jx + dy * jy)
+    return np.stack(cols, axis=1)
+
+
 def _robust_weights(err_m: np.ndarray, huber_m: float) -> np.ndarray:
     w = np.ones_like(err_m)
     big = err_m > huber_m
@@ -70,14 +83,7 @@ def _normal_equations(pts_v, jac_v, nearest, pose, gate_m, huber_m):
     nx = np.where(on, ex / np.where(on, err, 1.0), 0.0)
     ny = np.where(on, ey / np.where(on, err, 1.0), 0.0)
     w = _robust_weights(err, huber_m) * inl
-    # Jacobian row of the distance: n^T [[1, 0, -ry], [0, 1, rx]] (+ n^T R d point / d attitude)
-    cols = [nx, ny, rx * ny - ry * nx]
-    if jac_v is not None:
-        for k in range(jac_v.shape[2]):
-            jx = c * jac_v[:, 0, k] - s * jac_v[:, 1, k]
-            jy = s * jac_v[:, 0, k] + c * jac_v[:, 1, k]
-            cols.append(nx * jx + ny * jy)
-    J = np.stack(cols, axis=1)
+    J = _jacobian(nx, ny, rx, ry, c, s, jac_v)
     H = (J * w[:, None]).T @ J
     g = J.T @ (w * err)
     return H, g, err, inl, w
@@ -175,11 +181,7 @@ class Icp:
             )
             if inl.sum() < self.min_points:
                 return None
-            if prior is not None:
-                delta = pose - pose_prior
-                delta[2] = float(wrap_angle(delta[2]))
-                H[:3, :3] += prior
-                g[:3] += prior @ delta
+            _add_prior(H, g, pose, pose_prior, prior)
             step, d_att = self._step(H, g, att, scale)
             pose = pose + step
             pose[2] = float(wrap_angle(pose[2]))
@@ -195,7 +197,7 @@ class Icp:
             refined = self._refine(pts0, jac, thin, pose, att, local_map, scale, prior, pose_prior)
         if refined is not None:
             pose, att, H_field = refined
-        result = self._result(
+        return self._result(
             _moved(pts0, jac, att),
             jac,
             slots,
@@ -206,7 +208,6 @@ class Icp:
             att,
             None if refined is None else H_field,
         )
-        return result
 
     def _refine(self, pts0, jac, slots, pose, att, local_map, scale, prior, pose_prior):
         """Gauss-Newton on the likelihood field from the nearest-cell optimum: (pose, attitude,
@@ -222,8 +223,7 @@ class Icp:
             c = float(((1.0 - value[valid]) ** 2).sum()) * to_dist
             c += self.attitude_prior * float(att @ att)
             if prior is not None:
-                delta = pose - pose_prior
-                delta[2] = float(wrap_angle(delta[2]))
+                delta = _pose_delta(pose, pose_prior)
                 c += float(delta @ prior @ delta)
             return c
 
@@ -235,11 +235,7 @@ class Icp:
             if n < self.min_points:
                 return None
             H, g = H * to_dist, g * to_dist
-            if prior is not None:
-                delta = pose - pose_prior
-                delta[2] = float(wrap_angle(delta[2]))
-                H[:3, :3] += prior
-                g[:3] += prior @ delta
+            _add_prior(H, g, pose, pose_prior, prior)
             step, d_att = self._step(H, g, att, scale)
             for _halving in range(5):
                 trial = pose + step
@@ -333,14 +329,21 @@ def _field_equations(pts_v, jac_v, slots, pose, local_map, field_min):
     use = valid & (value > field_min)
     r = np.where(use, 1.0 - value, 0.0)
     gx, gy = np.where(use, -grad[:, 0], 0.0), np.where(use, -grad[:, 1], 0.0)
-    cols = [gx, gy, rx * gy - ry * gx]
-    if jac_v is not None:
-        for k in range(jac_v.shape[2]):
-            jx = c * jac_v[:, 0, k] - s * jac_v[:, 1, k]
-            jy = s * jac_v[:, 0, k] + c * jac_v[:, 1, k]
-            cols.append(gx * jx + gy * jy)
-    J = np.stack(cols, axis=1)
+    J = _jacobian(gx, gy, rx, ry, c, s, jac_v)
     return J.T @ J, J.T @ r, int(use.sum())
+
+
+def _pose_delta(pose, pose_prior) -> np.ndarray:
+    delta = pose - pose_prior
+    delta[2] = float(wrap_angle(delta[2]))
+    return delta
+
+
+def _add_prior(H, g, pose, pose_prior, prior) -> None:
+    """Add the pose prior (information `prior` about pose_prior, or None) to H and g in place."""
+    if prior is not None:
+        H[:3, :3] += prior
+        g[:3] += prior @ _pose_delta(pose, pose_prior)
 
 
 def _moved(pts0, jac, att):
