@@ -488,10 +488,10 @@ class DemoRun:
             conv = json.loads((loc_dir / "localization.json").read_text())["convergence_s"]
         except (OSError, ValueError, KeyError):
             return np.ones(len(t_est_s), dtype=bool)
+        if not rows:
+            return np.ones(len(t_est_s), dtype=bool)
         t_diag = np.array([r["t_ns"] for r in rows], dtype=np.int64)
         on_map = np.array([bool(r.get("on_map", True)) for r in rows])
-        if len(rows) == 0:
-            return np.ones(len(t_est_s), dtype=bool)
         # nearest diagnostics row of each estimate (TUM times are float seconds)
         rel = t_est_s - int(t_diag[0]) * 1e-9
         k = np.clip(np.searchsorted((t_diag - t_diag[0]) * 1e-9, rel - 1e-3), 0, len(rows) - 1)

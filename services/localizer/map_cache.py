@@ -160,15 +160,10 @@ class TileCache:
         if len(pts) == 0:
             return nearest, valid
         gxy = global_cells(pts)
-        tiles, flat = split_global_cells(gxy)
-        key = tiles[:, 0] * 1_000_003 + tiles[:, 1]
-        for k in np.unique(key):
-            sel = np.flatnonzero(key == k)
-            tile = (int(tiles[sel[0], 0]), int(tiles[sel[0], 1]))
+        for tile, sel, rows, cols in _by_tile(gxy):
             f = self.fields(tile)
             if f is None:
                 continue
-            rows, cols = np.divmod(flat[sel], TILE_CELLS)
             s = slots[sel]
             d_row = f.offsets[s, 0, rows, cols].astype(np.int64)
             d_col = f.offsets[s, 1, rows, cols].astype(np.int64)
@@ -209,15 +204,11 @@ class TileCache:
         """Smooth field values at global cells (N, 2) for class slots (N,); (values, cached)."""
         out = np.zeros(len(gxy))
         ok = np.zeros(len(gxy), dtype=bool)
-        tiles, flat = split_global_cells(gxy)
-        key = tiles[:, 0] * 1_000_003 + tiles[:, 1]
-        for k in np.unique(key):
-            sel = np.flatnonzero(key == k)
-            f = self.fields((int(tiles[sel[0], 0]), int(tiles[sel[0], 1])))
+        for tile, sel, rows, cols in _by_tile(gxy):
+            f = self.fields(tile)
             if f is None:
                 continue
             s = np.maximum(slots[sel], 0)
-            rows, cols = np.divmod(flat[sel], TILE_CELLS)
             out[sel] = f.smooth[s, rows, cols]
             ok[sel] = True
         return out, ok
@@ -228,14 +219,21 @@ class TileCache:
         out = np.zeros(len(pts), dtype=np.uint8)
         if len(pts) == 0:
             return out
-        tiles, flat = split_global_cells(global_cells(pts))
-        key = tiles[:, 0] * 1_000_003 + tiles[:, 1]
-        for k in np.unique(key):
-            sel = np.flatnonzero(key == k)
-            lab = self.labels((int(tiles[sel[0], 0]), int(tiles[sel[0], 1])))
+        for tile, sel, rows, cols in _by_tile(global_cells(pts)):
+            lab = self.labels(tile)
             if lab is not None:
-                out[sel] = lab.reshape(-1)[flat[sel]]
+                out[sel] = lab[rows, cols]
         return out
+
+
+def _by_tile(gxy: np.ndarray):
+    """Global cells (N, 2) grouped by tile: (tile, indices into gxy, rows, cols in the tile)."""
+    tiles, flat = split_global_cells(gxy)
+    key = tiles[:, 0] * 1_000_003 + tiles[:, 1]
+    for k in np.unique(key):
+        sel = np.flatnonzero(key == k)
+        rows, cols = np.divmod(flat[sel], TILE_CELLS)
+        yield (int(tiles[sel[0], 0]), int(tiles[sel[0], 1])), sel, rows, cols
 
 
 _SLOT_OF_CLASS = np.full(256, -1, dtype=np.int64)

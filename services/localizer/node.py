@@ -18,7 +18,7 @@ from common.bus import open_session
 from common.config import to_toml
 from common.drivelog import DriveLog
 from common.errors import DriveLogError
-from common.geometry import quat_wxyz_from_yaw
+from common.geometry import quat_wxyz_from_yaw, transform_points_2d
 from common.messages import Pose
 from services.localizer.frames import FramePoints
 from services.localizer.localizer import get_localizer, replay
@@ -155,14 +155,7 @@ def map_covers_view(cache, true_pose, roi, min_fraction: float = 0.25) -> bool:
     xs = roi.x_min_m + 0.5 + np.arange(int(roi.length_m))
     ys = -roi.width_m / 2 + 0.5 + np.arange(int(roi.width_m))
     grid = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
-    c, s = math.cos(true_pose[2]), math.sin(true_pose[2])
-    world = np.stack(
-        [
-            true_pose[0] + c * grid[:, 0] - s * grid[:, 1],
-            true_pose[1] + s * grid[:, 0] + c * grid[:, 1],
-        ],
-        axis=1,
-    )
+    world = transform_points_2d(np.asarray(true_pose, dtype=float), grid)
     return bool(np.mean(cache.class_at(world) != 0) >= min_fraction)
 
 
