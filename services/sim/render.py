@@ -214,6 +214,16 @@ class Appearance:
             "curb_rgb",
         ):
             setattr(self, name, (getattr(self, name) * self.colour_cast).astype(np.float32))
+        # raised curbs (drawn last so that the draws above keep their values): a curb stone
+        # 0.1-0.2 m wide and 8-16 cm high along every road edge, its vertical face usually in
+        # shade (sometimes sunlit), often a paved sidewalk behind it at the curb's height
+        self.curb_w_m = rng.uniform(0.1, 0.2)
+        self.curb_h_m = rng.uniform(0.08, 0.16)
+        self.curb_face = rng.uniform(0.35, 0.75) if rng.random() < 0.8 else rng.uniform(1.0, 1.2)
+        self.sidewalk_m = rng.uniform(1.0, 3.0) if rng.random() < 0.6 else 0.0
+        self.sidewalk_rgb = (
+            np.array([165, 160, 150]) * rng.uniform(0.65, 1.1) * self.colour_cast
+        ).astype(np.float32)
 
     @staticmethod
     def _skyline(rng) -> np.ndarray:
@@ -252,21 +262,50 @@ class FrameRenderer:
         ]
 
     def _surface_window(self, window):
-        """(road, paint, curb) masks of the label window as one 3-channel uint8 image, so that a
-        single linear remap samples all three. Paint is softened to hide the cell steps."""
+        """(road, paint, curb, sidewalk) masks of the label window as one 4-channel uint8 image,
+        so that a single linear remap samples all four. Paint is softened to hide the cell
+        steps; curb and sidewalk are bands at a distance from the road (label: none)."""
         if self._surface_cache is None or self._surface_cache[0] is not window:
             road = (window >= Cls.ROAD).astype(np.uint8) * 255
             paint = cv2.GaussianBlur((window >= Cls.LANE_LINE).astype(np.uint8) * 255, (0, 0), 0.6)
             if self.look.curb:
-                kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))  # ~0.15 m at 5 cm
-                curb = cv2.dilate(road, kernel) - road
+                curb = _ring(road, self.look.curb_w_m / self.labeler.cell_m)
+                walk_cells = (self.look.curb_w_m + self.look.sidewalk_m) / self.labeler.cell_m
+                walk = _ring(road, walk_cells, coarse=4) if self.look.sidewalk_m else road * 0
+                walk = cv2.subtract(walk, curb)
             else:
-                curb = np.zeros_like(road)
-            self._surface_cache = (window, cv2.merge([road, paint, curb]))
+                curb = walk = np.zeros_like(road)
+            self._surface_cache = (window, cv2.merge([road, paint, curb, walk]))
         return self._surface_cache[1]
 
+    def _raised(self, pose, T_vehicle_camera, geo, window, mx, my):
+        """Where the camera sees a raised curb (looks with curbs): everything off the road
+        stands curb_h_m high. A ray meets that height at t = c + (g - c) (H - h) / H (c the
+        camera's ground point, g the ray's ground point, H the camera height): off the road at
+        t, the ray ends on the curb top / sidewalk / verge there; on the road at t but off the
+        road at g, it ends on the curb's vertical face. Returns (surface sampled at t, top mask,
+        face mask), or None without curbs."""
+        if not self.look.curb:
+            return None
+        height = float(T_vehicle_camera[2, 3])
+        k = np.float32(max(height - self.look.curb_h_m, 0.05) / height)
+        _, x0, y0 = self.labeler.tiles.window(pose[0], pose[1])  # cached: the same window
+        cam_x, cam_y = _camera_ground_point(pose, T_vehicle_camera)
+        cell = self.labeler.cell_m
+        cx = np.float32((cam_x - x0) / cell - 0.5)  # window coordinates, as mx, my
+        cy = np.float32((cam_y - y0) / cell - 0.5)
+        tx = np.where(geo.ground, cx + (mx - cx) * k, -10.0).astype(np.float32)
+        ty = np.where(geo.ground, cy + (my - cy) * k, -10.0).astype(np.float32)
+        surf_t = cv2.remap(self._surface_window(window), tx, ty, cv2.INTER_LINEAR)
+        road_t = surf_t[:, :, 0] >= 128
+        top = geo.ground & ~road_t
+        return surf_t, top, geo.ground & road_t
+
     def labels(self, pose, T_vehicle_camera, vehicles=()) -> np.ndarray:
-        lab, geo, _ = self.labeler.labels(pose, T_vehicle_camera)
+        lab, geo, (window, mx, my) = self.labeler.labels(pose, T_vehicle_camera)
+        raised = self._raised(pose, T_vehicle_camera, geo, window, mx, my)
+        if raised is not None:
+            lab[raised[1]] = 0  # road hidden behind a raised island
         for hull, _, _ in self._vehicle_items(pose, T_vehicle_camera, vehicles):
             cv2.fillPoly(lab, [hull], 0)
         return lab
@@ -274,7 +313,10 @@ class FrameRenderer:
     def render(self, pose, T_vehicle_camera, t_s: float, vehicles=()):
         """(rgb uint8 (H, W, 3), labels uint8 (H, W)) of one frame."""
         lab, geo, (window, mx, my) = self.labeler.labels(pose, T_vehicle_camera)
-        rgb = self._ground(geo, window, mx, my, t_s)
+        raised = self._raised(pose, T_vehicle_camera, geo, window, mx, my)
+        if raised is not None:
+            lab[raised[1]] = 0
+        rgb = self._ground(geo, window, mx, my, t_s, raised)
         rgb = self._sky(rgb, geo, pose)
         rgb = self._vehicles(rgb, lab, pose, T_vehicle_camera, vehicles)
         return self._sensor(rgb), lab
@@ -289,12 +331,24 @@ class FrameRenderer:
         my -= np.floor(my / n) * n
         return cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
 
-    def _ground(self, geo, window, mx, my, t_s):
-        """Asphalt / roadside with texture, curbs, worn paint, shadows, lighting and haze, as
-        three (H, W) colour planes."""
+    def _ground(self, geo, window, mx, my, t_s, raised=None):
+        """Asphalt / roadside with texture, raised curbs and sidewalks, worn paint, shadows,
+        lighting and haze, as three (H, W) colour planes."""
         look = self.look
         surf = cv2.remap(self._surface_window(window), mx, my, cv2.INTER_LINEAR)
-        road, paint, curb = (c.astype(np.float32) * np.float32(1 / 255) for c in cv2.split(surf))
+        road, paint, _, _ = (c.astype(np.float32) * np.float32(1 / 255) for c in cv2.split(surf))
+        face = np.zeros_like(road)
+        curb = walk = face
+        if raised is not None:
+            surf_t, top, on_face = raised
+            _, _, curb_t, walk_t = (
+                c.astype(np.float32) * np.float32(1 / 255) for c in cv2.split(surf_t)
+            )
+            face = np.clip(1.0 - road, 0.0, 1.0) * on_face  # off the road at g, on it at t
+            topf = top.astype(np.float32)
+            curb, walk = curb_t * topf, walk_t * topf
+            road = road * (1.0 - topf)  # hidden behind a raised island
+            paint = paint * (1.0 - topf)
         paint = np.clip((paint - 0.27) * np.float32(1 / 0.45), 0.0, 1.0)  # re-sharpen
         wx, wy = geo.wx, geo.wy
         grain, wear = cv2.split(self._remap_wrap(look.fine, wx, wy, 0.04))
@@ -309,7 +363,8 @@ class FrameRenderer:
         keep = shade * (1.0 - fog)
         a = tex * keep * (1.0 - paint)
         b = paint * keep
-        off = 1.0 - road - curb
+        off = np.clip(1.0 - road - curb - walk - face, 0.0, 1.0)
+        face_gain = np.float32(look.curb_face)
         # per colour plane: (H, W) x scalar ops are far cheaper than (H, W, 1) x (3,) broadcasts
         planes = []
         for c in range(3):
@@ -317,6 +372,8 @@ class FrameRenderer:
                 off * (look.offroad_rgb[c] + (look.offroad2_rgb[c] - look.offroad_rgb[c]) * mix)
                 + road * look.asphalt_rgb[c]
                 + curb * look.curb_rgb[c]
+                + face * (look.curb_rgb[c] * face_gain)
+                + walk * look.sidewalk_rgb[c]
             )
             planes.append(ground * a + look.paint_rgb[c] * b + look.haze_rgb[c] * fog)
         return planes
@@ -397,6 +454,26 @@ class FrameRenderer:
                 rgb = cv2.filter2D(rgb, -1, k)
         rgb = cv2.add(rgb, self.noise[int(self.rng.integers(len(self.noise)))])
         return cv2.LUT(np.clip(rgb, 0, 255, out=rgb).astype(np.uint8), self.tone)
+
+
+def _ring(mask: np.ndarray, width_cells: float, coarse: int = 1) -> np.ndarray:
+    """255 where a uint8 mask (0 / 255) is 0 but within width_cells of it (a band around it);
+    computed on a `coarse`-times smaller grid for wide bands (a dilation is cheap only with
+    small kernels)."""
+    small = mask if coarse == 1 else cv2.resize(mask, None, fx=1 / coarse, fy=1 / coarse,
+                                                 interpolation=cv2.INTER_AREA)
+    r = max(int(round(width_cells / coarse)), 1)
+    grown = cv2.dilate(small, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    if coarse > 1:
+        grown = cv2.resize(grown, mask.shape[::-1], interpolation=cv2.INTER_NEAREST)
+    return cv2.subtract(grown, mask)
+
+
+def _camera_ground_point(pose, T_vehicle_camera) -> tuple[float, float]:
+    """World (x, y) of the point on the ground below the camera."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    tx, ty = float(T_vehicle_camera[0, 3]), float(T_vehicle_camera[1, 3])
+    return pose[0] + c * tx - s * ty, pose[1] + s * tx + c * ty
 
 
 def _ego_dist(v: Vehicle, pose) -> float:

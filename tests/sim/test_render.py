@@ -114,3 +114,42 @@ def test_other_vehicles_occlude_the_road_and_get_label_zero(camera):
     u, v = np.round(uv[0]).astype(int)
     assert free[v, u] != 0 and lab[v, u] == 0
     assert (lab == Cls.GROUND_SIGN).sum() < (free == Cls.GROUND_SIGN).sum()
+
+
+def _vehicle_rect(x0, x1, y0, y1):
+    """A ROAD rectangle given in the vehicle frame of POSE, in world coordinates."""
+    c, s = np.cos(POSE[2]), np.sin(POSE[2])
+    pts = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+    return Marking(Cls.ROAD, pts @ np.array([[c, s], [-s, c]]) + POSE[:2])
+
+
+def test_raised_island_hides_the_road_behind_it_and_shows_a_curb_face(camera):
+    """Two roads ahead with a 1 m raised island between them (x 10-11 m in the vehicle frame):
+    with raised curbs the island's curb hides a band of the far road just behind it (label 0
+    there), exactly the band the curb height predicts; without curbs nothing is hidden."""
+    world = World("island", [_vehicle_rect(-5, 10, -8, 8), _vehicle_rect(11, 60, -8, 8)])
+    r = FrameRenderer(world, camera, seed=3)
+    r.look.curb, r.look.curb_h_m = False, 0.15
+    flat = r.labels(POSE, camera.T_vehicle_camera)
+    r.look.curb = True
+    raised = r.labels(POSE, camera.T_vehicle_camera)
+    hidden = (flat == Cls.ROAD) & (raised == 0)
+    assert hidden.sum() > 50
+    assert ((raised != 0) & (flat != raised)).sum() == 0  # only ever hides, never adds
+    # ground distance of the hidden pixels: from 11 m out to where a 0.15 m curb at 11 m
+    # stops hiding the ground, x_cam + (11 - x_cam) * H / (H - h)
+    x_cam, height = camera.T_vehicle_camera[0, 3], camera.T_vehicle_camera[2, 3]
+    far = x_cam + (11.0 - x_cam) * height / (height - 0.15)
+    vv, uu = np.nonzero(hidden)
+    u, v = uu[len(uu) // 2], vv[len(vv) // 2]  # a pixel in the middle of the band
+    top, bottom = camera.project_vehicle_points(np.array([[far, 0.0, 0.0], [11.0, 0.0, 0.0]]))[0]
+    assert top[1] - 2 <= v <= bottom[1] + 2
+    # the face of the island's near curb: darker than the curb top when in shade
+    r.look.curb_face, r.look.shadow_strength, r.look.sidewalk_m = 0.4, 0.0, 0.0
+    rgb, lab = r.render(POSE, camera.T_vehicle_camera, 0.0)
+    (_, v_face), (_, v_top) = np.round(camera.project_vehicle_points(
+        np.array([[10.02, 0.0, 0.07], [10.5, 0.0, 0.15]]))[0]).astype(int)
+    grey = rgb.astype(float).mean(axis=2)
+    u0 = camera.width // 2
+    assert lab[v_face, u0] == 0 and lab[v_top, u0] == 0
+    assert grey[v_face, u0 - 3:u0 + 4].mean() < 0.8 * grey[v_top, u0 - 3:u0 + 4].mean()
