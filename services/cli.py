@@ -118,7 +118,16 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train-seg", help="train the segmentation model (needs .[train])")
     p.add_argument("--out", default="common/models")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--minutes", type=float, default=45.0)
+    p.add_argument("--minutes", type=float, default=45.0,
+                   help="wall-clock budget of rendering + training (default 45)")
+    p.add_argument("--frames", type=int, default=6000, help="training frames to render")
+    p.add_argument("--render-minutes", type=float, default=None,
+                   help="rendering budget (default: 20 %% of --minutes, at most 10)")
+    p.add_argument("--workers", type=int, default=1, help="processes rendering frames")
+    p.add_argument("--no-cache", action="store_true",
+                   help="do not read or write the rendered frames' cache (a temp-dir .npz)")
+    p.add_argument("--device", default="cpu", help="torch device: cpu (2 threads) or cuda")
+    p.add_argument("--batch", type=int, default=8, help="crops per training step")
     _common(p)
 
     p = sub.add_parser("dump-config", help="print the effective configuration as TOML")

@@ -19,7 +19,6 @@ from common.classes import NUM_CLASSES
 logger = logging.getLogger(__name__)
 
 
-
 def resize_image(rgb: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     if rgb.shape[1::-1] == tuple(size):
         return rgb
@@ -35,27 +34,76 @@ def resize_labels(labels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return cover.argmax(axis=0).astype(np.uint8)
 
 
+CHUNK_FRAMES = 24  # frames per town chunk: the unit of work, of seeding and of parallelism
+SYNTH_SHARE = 0.3  # chunks 0-2 of every 10 come from synth.py, the rest from the simulator
+
+
 def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
-                 max_frames: int = 6000, cache_dir: Path | None = None):
-    """(frames (N, H, W, 3) uint8, labels (N, H, W) uint8) from procedural towns; cached by seed."""
+                 max_frames: int = 6000, workers: int = 1, cache_dir: Path | None = None,
+                 cache: bool = True):
+    """(frames (N, H, W, 3) uint8, labels (N, H, W) uint8) from procedural towns; cached.
+
+    The set is a sequence of chunks (one town, CHUNK_FRAMES frames each), chunk k rendered from
+    its own seed (seed, k) alone, so the first n chunks are the same whatever `workers` renders
+    them; rendering stops at max_frames or when budget_s is spent (whichever comes first)."""
     cache_dir = cache_dir or Path(tempfile.gettempdir()) / "roadmap-segtrain"
-    cache = cache_dir / f"towns-v4-s{seed}-{input_size[0]}x{input_size[1]}.npz"
-    if cache.is_file():
-        logger.info("training frames from cache %s", cache)
-        with np.load(cache) as z:
+    path = cache_dir / f"towns-v5-s{seed}-{input_size[0]}x{input_size[1]}-n{max_frames}.npz"
+    if cache and path.is_file():
+        logger.info("training frames from cache %s", path)
+        with np.load(path) as z:
             return z["frames"], z["labels"]
     sim = _sim_available()
-    share = 0.7 if sim else 0.0  # the simulator's renderer gets most of the budget
-    frames, labels = _synth_towns(seed, input_size, budget_s * (1 - share),
-                                  int(max_frames * (1 - share)))
-    if sim:
-        f2, l2 = _sim_towns(seed, input_size, budget_s * share, max_frames - len(frames))
-        frames, labels = np.concatenate([frames, f2]), np.concatenate([labels, l2])
+    n_chunks = -(-max_frames // CHUNK_FRAMES)
+    jobs = [(seed, k, tuple(input_size), sim) for k in range(n_chunks)]
+    t0 = time.perf_counter()
+    frames, labels = [], []
+    if workers > 1:
+        import multiprocessing
+
+        pool = multiprocessing.get_context("spawn").Pool(workers, initializer=cv2.setNumThreads,
+                                                          initargs=(1,))
+        results = pool.imap(_render_chunk, jobs)
+    else:
+        pool, results = None, map(_render_chunk, jobs)
+    try:
+        for k, (f, lab) in enumerate(results):
+            frames.append(f)
+            labels.append(lab)
+            if k % 10 == 9:
+                logger.info("chunk %d: %d frames, %.0f s", k + 1, sum(map(len, frames)),
+                            time.perf_counter() - t0)
+            if time.perf_counter() - t0 > budget_s:
+                logger.info("render budget %.0f s spent after %d chunks", budget_s, k + 1)
+                break
+    finally:
+        if pool is not None:
+            pool.terminate()
+    frames = np.concatenate(frames)[:max_frames]
+    labels = np.concatenate(labels)[:max_frames]
     order = np.random.default_rng(seed).permutation(len(frames))
     frames, labels = frames[order], labels[order]
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(cache, frames=frames, labels=labels)
+    if cache:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(path, frames=frames, labels=labels)
     return frames, labels
+
+
+def _render_chunk(job):
+    """CHUNK_FRAMES (frames, labels) of chunk k: one town, synth.py or the simulator."""
+    seed, k, input_size, sim = job
+    rng = np.random.default_rng([seed, k])
+    world = town_world(10_000 * (seed + 1) + k, rng)
+    if sim and k % 10 >= round(10 * SYNTH_SHARE):
+        pairs = _sim_frames(world, rng)
+    else:
+        from services.segtrain.synth import render_town_frames
+
+        pairs = render_town_frames(world, 3, CHUNK_FRAMES // 3, rng, supersample=2)
+    frames, labels = [], []
+    for rgb, lab in pairs:
+        frames.append(resize_image(rgb, input_size))
+        labels.append(resize_labels(lab, input_size))
+    return np.stack(frames), np.stack(labels)
 
 
 def _sim_available() -> bool:
@@ -67,31 +115,20 @@ def _sim_available() -> bool:
     return True
 
 
-def _sim_towns(seed, input_size, budget_s, max_frames):
-    """The simulator's FrameRenderer (its own random looks per renderer seed) at random poses
-    of procedural towns, with jittered cameras and random lead / parked cars."""
+def _sim_frames(world, rng):
+    """The simulator's FrameRenderer (its own random looks per renderer seed) at random poses,
+    4 jittered cameras x 6 poses, with random lead / parked cars."""
     from services.segtrain.synth import random_camera, random_pose
     from services.sim.render import FrameRenderer
 
-    rng = np.random.default_rng(seed + 7)
-    t0 = time.perf_counter()
-    frames, labels = [], []
-    k = 0
-    while time.perf_counter() - t0 < budget_s and len(frames) < max_frames:
-        world = town_world(20_000 * (seed + 1) + k, rng)
-        for _ in range(4):
-            camera = random_camera(rng)
-            renderer = FrameRenderer(world, camera, seed=int(rng.integers(2**31)))
-            renderer.look.curb = rng.random() < 0.9  # curbs: light strips that are not paint
-            for _ in range(6):
-                pose = random_pose(world, rng)
-                rgb, lab = renderer.render(pose, camera.T_vehicle_camera,
-                                           float(rng.uniform(0, 600)), random_cars(pose, rng))
-                frames.append(resize_image(rgb, input_size))
-                labels.append(resize_labels(lab, input_size))
-        logger.info("sim town %d: %d frames, %.0f s", k, len(frames), time.perf_counter() - t0)
-        k += 1
-    return np.stack(frames[:max_frames]), np.stack(labels[:max_frames])
+    for _ in range(4):
+        camera = random_camera(rng)
+        renderer = FrameRenderer(world, camera, seed=int(rng.integers(2**31)))
+        renderer.look.curb = rng.random() < 0.85  # raised curbs: light edges that are not paint
+        for _ in range(CHUNK_FRAMES // 4):
+            pose = random_pose(world, rng)
+            yield renderer.render(pose, camera.T_vehicle_camera, float(rng.uniform(0, 600)),
+                                  random_cars(pose, rng))
 
 
 def random_cars(pose, rng) -> list:
@@ -187,20 +224,3 @@ def town_world(seed: int, rng):
 
     world = load_world(f"town:{rng.uniform(0.6, 1.5):.2f}", seed)
     return thinned(restyled(world, rng), rng)
-
-
-def _synth_towns(seed, input_size, budget_s, max_frames):
-    from services.segtrain.synth import render_town_frames
-
-    rng = np.random.default_rng(seed)
-    t0 = time.perf_counter()
-    frames, labels = [], []
-    k = 0
-    while time.perf_counter() - t0 < budget_s and len(frames) < max_frames:
-        world = town_world(10_000 * (seed + 1) + k, rng)
-        for rgb, lab in render_town_frames(world, 5, 8, rng, supersample=2):
-            frames.append(resize_image(rgb, input_size))
-            labels.append(resize_labels(lab, input_size))
-        logger.info("synth town %d: %d frames, %.0f s", k, len(frames), time.perf_counter() - t0)
-        k += 1
-    return np.stack(frames[:max_frames]), np.stack(labels[:max_frames])

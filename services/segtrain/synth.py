@@ -18,7 +18,9 @@ from common.geometry import rot_z
 
 CELL_M = 0.05
 SUPER = 2
-CURB = 255  # raster value of curb cells (rendered, labelled none)
+CURB = 255  # raster values of curb top, curb face and sidewalk cells (rendered, labelled none)
+FACE = 254
+WALK = 253
 
 
 TEXTURE = 1024  # world-anchored textures tile every 51.2 m
@@ -29,11 +31,18 @@ class WorldRaster:
 
     def __init__(self, world, rng):
         self.labels, self.x0, self.y0 = world.rasterize_all(4.0, CELL_M)
-        # curbs: a light strip 0.1-0.3 m wide just outside the road (label none, looks like paint)
+        # curbs: a 5-10 cm shaded band (the curb's vertical face as the camera sees it), the
+        # curb top 0.1-0.2 m and, in some towns, a paved sidewalk 1-3 m wide behind it; all
+        # labelled none (a curb is no marking, though a light one looks like an edge line)
         road = (self.labels >= Cls.ROAD).astype(np.uint8)
-        k = 2 * int(rng.integers(2, 7)) + 1
-        curb = cv2.dilate(road, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) - road
-        self.labels = np.where(curb > 0, CURB, self.labels).astype(np.uint8)
+        d = cv2.distanceTransform((1 - road) * 255, cv2.DIST_L2, 3) * CELL_M
+        face_end = rng.uniform(0.05, 0.1)
+        curb_end = face_end + rng.uniform(0.1, 0.2)
+        walk_end = curb_end + (rng.uniform(1.0, 3.0) if rng.random() < 0.6 else 0.0)
+        out = road == 0
+        for value, lo, hi in ((FACE, 0.0, face_end), (CURB, face_end, curb_end),
+                              (WALK, curb_end, walk_end)):
+            self.labels[out & (d > lo) & (d <= hi)] = value
         self.fine = _noise((TEXTURE, TEXTURE), rng, scale=1)  # grain
         self.coarse = _noise((TEXTURE, TEXTURE), rng, scale=64)  # patches, repairs, shadows
         self.wear = _noise((TEXTURE, TEXTURE), rng, scale=6)
@@ -120,7 +129,7 @@ def render(raster: WorldRaster, ground: GroundMap, pose, rng):
     rgb = _shade(lab, fine, coarse, wear, ground, h, style, rng)
     k = ground.ss
     rgb = rgb.reshape(h * k, w * k, 3)
-    labels = np.where(lab == CURB, 0, lab).reshape(h * k, w * k).astype(np.uint8)
+    labels = np.where(lab >= WALK, 0, lab).reshape(h * k, w * k).astype(np.uint8)
     if k > 1:
         rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
         labels = _downsample_labels(labels, (w, h))
@@ -147,6 +156,8 @@ def _style(rng) -> dict:
         "light": rng.uniform(0.55, 1.35),
         "fog_m": rng.uniform(60, 400),
         "curb": rng.uniform(140, 215) * rng.uniform(0.95, 1.05, 3) if rng.random() < 0.7 else None,
+        "face": rng.uniform(0.35, 0.75) if rng.random() < 0.8 else rng.uniform(1.0, 1.2),
+        "walk": rng.uniform(105, 185) * rng.uniform(0.95, 1.05, 3),
     }
 
 
@@ -159,9 +170,11 @@ def _shade(lab, fine, coarse, wear, ground, h, s, rng):
     rgb[:] = s["verge"] * (1.0 + 0.25 * fine[:, None] + 0.2 * coarse[:, None])
     rgb[road] = base[road]
     if s["curb"] is not None:
-        curb = lab == CURB
-        rgb[curb] = (s["curb"] * (1.0 + 0.08 * fine[:, None]))[curb]
-    paint = (lab >= Cls.LANE_LINE) & (lab != CURB)
+        for value, colour in ((CURB, s["curb"]), (FACE, s["curb"] * s["face"]),
+                              (WALK, s["walk"])):
+            m = lab == value
+            rgb[m] = (colour * (1.0 + 0.08 * fine[:, None] + 0.08 * coarse[:, None]))[m]
+    paint = (lab >= Cls.LANE_LINE) & (lab < WALK)
     colour = np.array([s["paint"], s["paint"], s["paint"]])
     tint = np.array([s["paint"], s["paint"] * 0.8, 60.0]) if s["yellow"] else colour
     pc = np.where((lab == Cls.LANE_LINE)[:, None], tint, colour)

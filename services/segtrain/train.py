@@ -34,14 +34,22 @@ def train_command(args, cfg) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     minutes = float(args.minutes)
-    render_budget_s = min(0.2 * minutes * 60.0, 10 * 60.0)
+    render_budget_s = (min(0.2 * minutes * 60.0, 10 * 60.0) if args.render_minutes is None
+                       else 60.0 * args.render_minutes)
     frames, labels = seg_data.training_set(seed=args.seed, input_size=INPUT_SIZE,
-                                           budget_s=render_budget_s)
+                                           budget_s=render_budget_s, max_frames=args.frames,
+                                           workers=args.workers, cache=not args.no_cache)
     render_s = time.perf_counter() - t_start
     train_s = max(minutes * 60.0 - render_s - 60.0, 60.0)
-    result = train_and_export(frames, labels, out, seed=args.seed, train_s=train_s)
+    result = train_and_export(frames, labels, out, seed=args.seed, train_s=train_s,
+                              device=args.device, batch=args.batch)
     result["render_s"] = round(render_s, 1)
     result["minutes"] = minutes
+    result["command"] = " ".join(
+        ["roadmap train-seg --out DIR", f"--seed {args.seed}", f"--minutes {minutes:g}",
+         f"--frames {args.frames}", f"--workers {args.workers}"]
+        + ([f"--render-minutes {args.render_minutes:g}"] if args.render_minutes else [])
+        + [f"--device {args.device}", f"--batch {args.batch}"])
     result["total_s"] = round(time.perf_counter() - t_start, 1)
     (out / "train_log.json").write_text(json.dumps(result, indent=2))
     (out / "MODEL_CARD.md").write_text(model_card(result))
@@ -58,21 +66,27 @@ def class_weights(labels: np.ndarray) -> np.ndarray:
     return np.clip(w / w[Cls.ROAD], 1.0, 6.0)
 
 
-def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float) -> dict:
+def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
+                     device: str = "cpu", batch: int = BATCH) -> dict:
+    """Train for train_s seconds on `device` (cpu: 2 threads; cuda: the frames live on the GPU),
+    export to ONNX (on the CPU) and check the export."""
     import torch
 
     from services.segtrain.net import RoadSegNet, count_parameters
 
     torch.manual_seed(seed)
     torch.set_num_threads(THREADS)
+    torch.backends.cudnn.benchmark = True
+    dev = torch.device(device)
     rng = np.random.default_rng(seed)
     n_val = max(len(frames) // 20, 4)
-    x_all = torch.from_numpy(frames).permute(0, 3, 1, 2).contiguous()  # uint8 NCHW
-    y_all = torch.from_numpy(labels)  # uint8; int64 per batch (saves GBs at full resolution)
+    x_all = torch.from_numpy(frames).permute(0, 3, 1, 2).contiguous().to(dev)  # uint8 NCHW
+    y_all = torch.from_numpy(labels).to(dev)  # uint8; int64 per batch (saves GBs)
     weights = class_weights(labels[n_val:])
-    model = RoadSegNet(widths=WIDTHS)
+    model = RoadSegNet(widths=WIDTHS).to(dev)
     opt = torch.optim.AdamW(model.parameters(), lr=LR_MAX, weight_decay=1e-4)
-    loss_fn = torch.nn.CrossEntropyLoss(weight=torch.tensor(weights, dtype=torch.float32))
+    loss_fn = torch.nn.CrossEntropyLoss(weight=torch.tensor(weights, dtype=torch.float32,
+                                                            device=dev))
     logger.info("training %d params on %d frames (%d held for validation), weights %s",
                 count_parameters(model), len(frames) - n_val, n_val, np.round(weights, 2))
     t0, step, losses = time.perf_counter(), 0, []
@@ -80,21 +94,24 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float) ->
         frac = elapsed / train_s
         for g in opt.param_groups:
             g["lr"] = _lr(frac)
-        idx = rng.integers(n_val, len(frames), BATCH)
+        idx = torch.from_numpy(rng.integers(n_val, len(frames), batch)).to(dev)
         xb, yb = _crop_batch(x_all[idx], y_all[idx], rng)
         xb, yb = augment(xb, yb.long(), rng)
         loss = loss_fn(model(xb), yb)
         opt.zero_grad()
         loss.backward()
         opt.step()
-        losses.append(loss.item())
+        losses.append(loss.detach())
         step += 1
         if step % 100 == 0:
+            losses = [float(v) for v in losses]  # one device sync per 100 steps
             logger.info("step %d  %.0f s  lr %.4f  loss %.4f", step, elapsed, _lr(frac),
                         float(np.mean(losses[-100:])))
+    losses = [float(v) for v in losses]
     model.eval()
     val_iou = _validate(model, x_all[:n_val], y_all[:n_val])
     logger.info("validation IoU (procedural towns, held out): %s", val_iou)
+    model, x_all = model.cpu(), x_all[:4].cpu()
     model_path = out / "roadseg.onnx"
     torch.save(model.state_dict(), out / "roadseg.pt")  # for fine-tuning; not packaged
     export_onnx(model, model_path, seed=seed)
@@ -104,7 +121,8 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float) ->
         "params": count_parameters(model), "class_weights": np.round(weights, 3).tolist(),
         "final_loss": float(np.mean(losses[-100:])) if losses else None,
         "val_iou_town": val_iou, "onnx_max_abs_diff": max_diff, "onnx_argmax_agreement": agree,
-        "model_bytes": model_path.stat().st_size, "seed": seed,
+        "model_bytes": model_path.stat().st_size, "seed": seed, "device": device,
+        "batch": batch,
     }
 
 
@@ -133,22 +151,23 @@ def augment(x_u8, y, rng):
     import torch
     from torch.nn import functional as F
 
-    n = x_u8.shape[0]
+    n, dev = x_u8.shape[0], x_u8.device
+
+    def draw(lo, hi, shape):
+        return torch.from_numpy(rng.uniform(lo, hi, shape).astype(np.float32)).to(dev)
+
     x = x_u8.float() / 255.0
-    gain = torch.from_numpy(rng.uniform(0.55, 1.45, (n, 1, 1, 1)).astype(np.float32))
-    cast = torch.from_numpy(rng.uniform(0.85, 1.15, (n, 3, 1, 1)).astype(np.float32))
+    gain, cast = draw(0.55, 1.45, (n, 1, 1, 1)), draw(0.85, 1.15, (n, 3, 1, 1))
     mean = x.mean(dim=(1, 2, 3), keepdim=True)
-    contrast = torch.from_numpy(rng.uniform(0.6, 1.3, (n, 1, 1, 1)).astype(np.float32))
+    contrast = draw(0.6, 1.3, (n, 1, 1, 1))
     x = ((x - mean) * contrast + mean) * gain * cast
-    gamma = torch.from_numpy(rng.uniform(0.7, 1.4, (n, 1, 1, 1)).astype(np.float32))
-    x = x.clamp(1e-4, 1.0) ** gamma
+    x = x.clamp(1e-4, 1.0) ** draw(0.7, 1.4, (n, 1, 1, 1))
     if rng.random() < 0.4:
         sigma = float(rng.uniform(0.4, 1.2))
-        k = torch.from_numpy(_gauss_kernel(sigma)).expand(3, 1, 5, 5).contiguous()
+        k = torch.from_numpy(_gauss_kernel(sigma)).to(dev).expand(3, 1, 5, 5).contiguous()
         x = F.conv2d(F.pad(x, (2, 2, 2, 2), mode="replicate"), k, groups=3)
-    noise = torch.from_numpy(rng.uniform(0.0, 0.05, (n, 1, 1, 1)).astype(np.float32))
-    x = x + torch.randn_like(x) * noise
-    flip = torch.from_numpy(rng.random(n) < 0.5)
+    x = x + torch.randn_like(x) * draw(0.0, 0.05, (n, 1, 1, 1))
+    flip = torch.from_numpy(rng.random(n) < 0.5).to(dev)
     x[flip] = x[flip].flip(-1)
     y = y.clone()
     y[flip] = y[flip].flip(-1)
@@ -166,9 +185,9 @@ def _validate(model, x_u8, y) -> dict:
     import torch
 
     with torch.no_grad():
-        pred = np.concatenate([model(x_u8[i:i + 8].float() / 255.0).argmax(1).numpy()
+        pred = np.concatenate([model(x_u8[i:i + 8].float() / 255.0).argmax(1).cpu().numpy()
                                for i in range(0, len(x_u8), 8)])
-    y = y.numpy()
+    y = y.cpu().numpy()
     out = {}
     for c in Cls:
         if c == Cls.NONE:
@@ -239,22 +258,22 @@ def model_card(result: dict) -> str:
   U-Net skips back to 1/2, logits upsampled bilinearly to the input size;
   {result["params"]} parameters, {result["model_bytes"] / 1024:.0f} KiB, ONNX opset 17.
 - **Training data**: only seeded procedural towns (services/sim/town.py), never the Karlsruhe or
-  Argoverse 2 benchmark worlds: {result["frames"]} frames rendered by the simulator's renderer
-  (services/sim/render.py: random looks, worn paint, curbs, shadows, haze, skyline, other cars)
-  and by services/segtrain/synth.py (more materials, curbs 0.1-0.3 m), at random route poses
-  (half facing stop lines, crosswalks or signs), with camera height 1.25-1.75 m, pitch 1.5-7 deg,
-  roll/yaw jitter, focal length +-15 %, principal point and distortion jitter. The towns' paint
-  is restyled per town (services/segtrain/data.py `restyled`, `thinned`): edge lines dropped on
-  40-100 % of road sides (curb-only edges; 90 % of looks draw curbs), shoulders narrowed to none,
-  lane-line widths
-  0.10-0.16 m and patches of thick 0.2-0.3 m lines, 5-35 % of lane-line pieces removed.
-  Training-time augmentation: brightness, contrast, colour cast, gamma, blur, noise, horizontal
-  flips, random {CROP_HW[1]}x{CROP_HW[0]} crops.
-- **Training**: `roadmap train-seg --out DIR --seed {result["seed"]} \\
-  --minutes {result.get("minutes", 45):g}`
+  Argoverse 2 benchmark worlds: {result["frames"]} frames in chunks of one town each (seeded by
+  (seed, chunk), services/segtrain/data.py), 70 % rendered by the simulator's renderer
+  (services/sim/render.py: random looks, worn paint, raised curbs with shaded faces and
+  sidewalks, shadows, haze, skyline, other cars) and 30 % by services/segtrain/synth.py (more
+  materials, curb face / top / sidewalk bands), at random route poses (half facing stop lines,
+  crosswalks or signs), with camera height 1.25-1.75 m, pitch 1.5-7 deg, roll/yaw jitter, focal
+  length +-15 %, principal point and distortion jitter. The towns' paint is restyled per town
+  (`restyled`, `thinned`): edge lines dropped on 40-100 % of road sides (curb-only edges; 85 %
+  of looks draw curbs), shoulders narrowed to none, lane-line widths 0.10-0.16 m and patches of
+  thick 0.2-0.3 m lines, 5-35 % of lane-line pieces removed. Training-time augmentation:
+  brightness, contrast, colour cast, gamma, blur, noise, horizontal flips, random
+  {CROP_HW[1]}x{CROP_HW[0]} crops.
+- **Training**: `{result.get("command", "roadmap train-seg")}`
   (`pip install .[train]`), RoadSegNet widths {list(WIDTHS)}, AdamW, cosine schedule,
-  class-weighted cross-entropy
-  (weights {result["class_weights"]}), 2 CPU threads; {result["steps"]} steps in
+  class-weighted cross-entropy (weights {result["class_weights"]}), device
+  `{result.get("device", "cpu")}`, batch {result.get("batch", BATCH)}; {result["steps"]} steps in
   {result["train_s"] / 60:.1f} min after {result.get("render_s", 0) / 60:.1f} min of rendering.
   The export is checked against torch with onnxruntime
   (max |diff| {result["onnx_max_abs_diff"]:.1e},
