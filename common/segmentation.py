@@ -169,8 +169,14 @@ class OnnxSegmenter(Segmenter):
         img = image_rgb
         if img.shape[1] != w or img.shape[0] != h:
             img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
-        x = (img.astype(np.float32) * self.scale - self.mean) / self.std
-        return np.ascontiguousarray(x.transpose(2, 0, 1)[None])
+        # per channel, straight into the NCHW buffer: x = img * (scale / std) - mean / std
+        x = np.empty((1, 3, h, w), np.float32)
+        gain, offset = self.scale / self.std, -self.mean / self.std
+        for c in range(3):
+            np.multiply(img[:, :, c], gain[c], out=x[0, c], casting="unsafe")
+            if offset[c]:
+                x[0, c] += offset[c]
+        return x
 
     def segment_model_size(self, image_rgb: np.ndarray, out_size=None) -> np.ndarray:
         """Labels (h, w) uint8 at the model's input size, or at out_size (W, H) when the logits
@@ -206,14 +212,18 @@ class OnnxSegmenter(Segmenter):
 
 
 def argmax_channels(scores: np.ndarray) -> np.ndarray:
-    """np.argmax(scores, axis=0) for a few channels, as a running maximum (first maximum wins,
-    like np.argmax): about 4x faster than numpy's strided axis-0 argmax on a 6x360x640 array."""
-    best = scores[0]
-    arg = np.zeros(best.shape, np.uint8 if len(scores) < 256 else np.int64)
+    """np.argmax(scores, axis=0) for a few channels (first maximum wins, like np.argmax): the
+    running maximum, then each channel from the last to the first claims the pixels where it
+    equals the maximum; all in place, about 4x faster than numpy's strided axis-0 argmax on a
+    6x360x640 array (NaN scores are not supported)."""
+    best = scores[0].copy()
     for c in range(1, len(scores)):
-        better = scores[c] > best
-        best = np.where(better, scores[c], best)
-        arg = np.where(better, arg.dtype.type(c), arg)
+        np.maximum(best, scores[c], out=best)
+    arg = np.full(best.shape, len(scores) - 1, np.uint8 if len(scores) < 256 else np.int64)
+    hit = np.empty(best.shape, bool)
+    for c in range(len(scores) - 2, -1, -1):
+        np.equal(scores[c], best, out=hit)
+        np.copyto(arg, arg.dtype.type(c), where=hit)
     return arg
 
 
