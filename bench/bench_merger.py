@@ -2,7 +2,12 @@
 same data in the same run, and acked ingest throughput with 2 shards against 1 through a real
 router (separate processes, SQLite durable store).
 
-    python bench/bench_merger.py --out DIR [--quick]   -> DIR/merger.json
+    python bench/bench_merger.py --out DIR [--quick] [--shard-cpus 0,1]   -> DIR/merger.json
+
+--shard-cpus pins the shard processes to those CPUs and the router and this load generator to
+all the others (Linux sched_setaffinity): on a machine with more than 2 cores, "2 shards against
+1 on 2 cores" then measures the shards alone on their 2 cores, with the router and the load
+generator, which a real deployment runs elsewhere, not taking those cores' time.
 
 A cell-vote is one patch row: one cell with its 6 class counts. "Merged" = MergerShard.apply_batch
 of every patch + flush() (the evidence rule's labels for every tile), from patch objects to label
@@ -138,9 +143,25 @@ def merge_throughput(quick: bool) -> dict:
 # -- ingest scaling ------------------------------------------------------------------------------
 
 
-def _spawn(args: list[str], log) -> subprocess.Popen:
+PINNING: dict = {}  # role ("shard", "other") -> CPU set, from --shard-cpus
+
+
+def _spawn(args: list[str], log, role: str = "other") -> subprocess.Popen:
+    cpus = PINNING.get(role)
     return subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=REPO,
-                            stdout=subprocess.DEVNULL, stderr=log)
+                            stdout=subprocess.DEVNULL, stderr=log,
+                            preexec_fn=(lambda: os.sched_setaffinity(0, cpus)) if cpus else None)
+
+
+def pin(shard_cpus: set[int]) -> dict:
+    """Shards on shard_cpus, router and load generator (this process) on the other CPUs."""
+    others = set(os.sched_getaffinity(0)) - shard_cpus
+    if not shard_cpus or not others:
+        raise SystemExit(f"--shard-cpus {sorted(shard_cpus)}: needs CPUs left for the router "
+                         f"and load generator (this machine: {sorted(os.sched_getaffinity(0))})")
+    PINNING.update(shard=shard_cpus, other=others)
+    os.sched_setaffinity(0, others)
+    return {"shards": sorted(shard_cpus), "router_and_load_generator": sorted(others)}
 
 
 def _cpu_s(pid: int) -> float:
@@ -169,7 +190,7 @@ def ingest_rate(n_shards: int, batches: list[IngestBatch], window: int = 8) -> d
             for s in range(n_shards):
                 procs.append(_spawn(["merger", "--shard", str(s), "--shards", str(n_shards),
                                      "--store", f"{tmp}/s{s}.sqlite", "--connect", endpoint,
-                                     "--log-level", "WARNING"], log))
+                                     "--log-level", "WARNING"], log, role="shard"))
             with open_session(BusConfig(connect=[endpoint])) as session:
                 _wait_shards(session, n_shards)
                 work = [(keys.ingest(owner_of_tile(b.patches[0].tile, n_shards)), codec.encode(b))
@@ -250,15 +271,17 @@ def balanced_tiles(tiles: dict, per_shard: int) -> dict:
     return out
 
 
-def ingest_scaling(quick: bool) -> dict:
+def ingest_scaling(quick: bool, window: int = 8) -> dict:
+    """1 shard against 2 on the same batches; `window` ingest requests in flight at once (a
+    fleet of `window` vehicles with one upload each outstanding)."""
     tiles = balanced_tiles(world_label_tiles(True), per_shard=4 if quick else 8)
     patches = traversal_patches(tiles, traversals=2 if quick else 8, pieces=8)
     batches = [IngestBatch(patches[i:i + 4]) for i in range(0, len(patches), 4)]
     rounds = 1 if quick else 3
     ones, twos = [], []
     for _ in range(rounds):  # alternate, best of each: the machine is shared
-        ones.append(ingest_rate(1, batches))
-        twos.append(ingest_rate(2, batches))
+        ones.append(ingest_rate(1, batches, window))
+        twos.append(ingest_rate(2, batches, window))
     one = max(ones, key=lambda r: r["per_s"])
     two = max(twos, key=lambda r: r["per_s"])
     return {"ingest_1_shard_per_s": round(one["per_s"], 1),
@@ -266,6 +289,8 @@ def ingest_scaling(quick: bool) -> dict:
             "ratio": round(two["per_s"] / one["per_s"], 3),
             "unit": "patches/s, acked + merged + compressed (stats reply after the last flush)",
             "cores": os.cpu_count(),
+            "shard_cores": len(PINNING.get("shard", ())) or os.cpu_count(),
+            "requests_in_flight": window,
             "rounds": {"one_shard": [round(r["per_s"], 1) for r in ones],
                        "two_shards": [round(r["per_s"], 1) for r in twos]},
             "best_runs": {"one_shard": _rounded(one), "two_shards": _rounded(two)},
@@ -305,17 +330,23 @@ def _rounded(run: dict) -> dict:
     return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in run.items()}
 
 
-def run(quick: bool = False) -> dict:
-    return {"merge": merge_throughput(quick), "scaling": ingest_scaling(quick)}
+def run(quick: bool = False, window: int = 8) -> dict:
+    return {"merge": merge_throughput(quick), "scaling": ingest_scaling(quick, window)}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", required=True)
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--window", type=int, default=8, help="ingest requests in flight")
+    ap.add_argument("--shard-cpus", default="",
+                    help="comma-separated CPUs for the shards; the rest run router + load")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO)
-    result = run(args.quick)
+    pinning = pin({int(c) for c in args.shard_cpus.split(",")}) if args.shard_cpus else None
+    result = run(args.quick, args.window)
+    if pinning:
+        result["scaling"]["pinning"] = pinning
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "merger.json").write_text(json.dumps(result, indent=1))
