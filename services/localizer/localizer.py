@@ -354,6 +354,7 @@ def get_localizer(lc, cache: TileCache, seed: int = 0) -> Localizer:
     )
     ekf = PoseFilter(
         speed_sigma_rel=lc.speed_sigma_rel,
+        scale_walk_per_s=lc.scale_walk_per_s,
         yaw_rate_sigma_rps=math.radians(lc.yaw_rate_sigma_dps),
         max_position_sigma_m=lc.max_position_sigma_m,
     )
