@@ -382,24 +382,41 @@ def replay(localizer: Localizer, streams: dict, frame_points, on_estimate=None) 
     jacobians]);
     on_estimate(i, estimate) is called after every frame.
 
-    Odometry speed and gyro rate are held between their samples; every input first advances
-    the filter to its own time."""
+    Every input first advances the filter to its own time. A new odometry or gyro sample closes
+    the interval since the filter's last step with the trapezoid rule: the mean of the new
+    sample and the stream's value at the start of the interval (linear between its two
+    samples); the other stream, and a frame, use the values held from their last samples
+    (nothing later is known yet: causal, as on the car). Holding alone lags by half a sample
+    period wherever speed or turn rate change (Karlsruhe demo drive: longitudinal error 0.052 ->
+    0.045 m, y 0.042 -> 0.034 m)."""
     events = _merged_events(streams)
-    speed, rate = 0.0, 0.0
+    held = [0.0, 0.0]  # speed (m/s), yaw rate (rad/s) of the last samples
+    last_t = [None, None]  # their times
+    keys = ("odom_speed_mps", "imu_yaw_rate_rps")
+    t_filter = None
     out = []
     for t_ns, kind, i in events:
-        localizer.predict(int(t_ns), speed, rate)
-        if kind == 0:
-            speed = float(streams["odom_speed_mps"][i])
-        elif kind == 1:
-            rate = float(streams["imu_yaw_rate_rps"][i])
-        elif kind == 2:
+        t_ns = int(t_ns)
+        if kind < 2:
+            new = float(streams[keys[kind]][i])
+            t0 = last_t[kind]
+            start = held[kind]
+            if t0 is not None and t_filter is not None and t_ns > t0:
+                start += (new - held[kind]) * (max(t_filter, t0) - t0) / (t_ns - t0)
+            rates = list(held)
+            rates[kind] = 0.5 * (start + new) if t0 is not None else new
+            localizer.predict(t_ns, rates[0], rates[1])
+            held[kind], last_t[kind] = new, t_ns
+        else:
+            localizer.predict(t_ns, held[0], held[1])
+        t_filter = t_ns
+        if kind == 2:
             if bool(streams["gnss_ok"][i]):
                 localizer.correct_gnss(
-                    int(t_ns), streams["gnss_xy_m"][i], float(streams["gnss_sigma_m"][i])
+                    t_ns, streams["gnss_xy_m"][i], float(streams["gnss_sigma_m"][i])
                 )
-        else:
-            out.append(localizer.process_frame(int(t_ns), *frame_points(i)))
+        elif kind == 3:
+            out.append(localizer.process_frame(t_ns, *frame_points(i)))
             if on_estimate is not None:
                 on_estimate(i, out[-1])
     return out
