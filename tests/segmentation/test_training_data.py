@@ -41,3 +41,18 @@ def test_argmax_channels_matches_numpy_including_ties(rng):
     got = argmax_channels(scores)
     assert got.dtype == np.uint8
     assert (got == scores.argmax(axis=0)).all()
+
+
+def test_training_chunks_are_seeded_and_do_not_depend_on_the_worker_count(tmp_path):
+    """The training set is a sequence of per-town chunks seeded by (seed, chunk) alone: one
+    process and a pool of two render the same frames (the GPU run used 16 processes)."""
+    from services.segtrain.data import CHUNK_FRAMES, training_set
+
+    kw = dict(seed=3, input_size=(160, 96), budget_s=1e9, max_frames=CHUNK_FRAMES, cache=False)
+    f1, l1 = training_set(workers=1, **kw)
+    f2, l2 = training_set(workers=2, **kw)
+    assert f1.shape == (CHUNK_FRAMES, 96, 160, 3) and l1.shape == (CHUNK_FRAMES, 96, 160)
+    assert np.array_equal(f1, f2) and np.array_equal(l1, l2)
+    assert (l1 >= Cls.LANE_LINE).any()  # paint in view, not an empty road
+    f3, _ = training_set(workers=1, **{**kw, "seed": 4})
+    assert not np.array_equal(f1, f3)
