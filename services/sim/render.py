@@ -271,7 +271,8 @@ class FrameRenderer:
             if self.look.curb:
                 curb = _ring(road, self.look.curb_w_m / self.labeler.cell_m)
                 walk_cells = (self.look.curb_w_m + self.look.sidewalk_m) / self.labeler.cell_m
-                walk = _ring(road, walk_cells, coarse=4) if self.look.sidewalk_m else road * 0
+                walk = (_ring(road, walk_cells, coarse=4) if self.look.sidewalk_m
+                        else np.zeros_like(road))
                 walk = cv2.subtract(walk, curb)
             else:
                 curb = walk = np.zeros_like(road)
@@ -301,21 +302,24 @@ class FrameRenderer:
         top = geo.ground & ~road_t
         return surf_t, top, geo.ground & road_t
 
-    def labels(self, pose, T_vehicle_camera, vehicles=()) -> np.ndarray:
+    def _ground_labels(self, pose, T_vehicle_camera):
+        """(labels, geometry, (window, mx, my), raised) of the ground: the road hidden behind a
+        raised island gets label 0."""
         lab, geo, (window, mx, my) = self.labeler.labels(pose, T_vehicle_camera)
         raised = self._raised(pose, T_vehicle_camera, geo, window, mx, my)
         if raised is not None:
-            lab[raised[1]] = 0  # road hidden behind a raised island
+            lab[raised[1]] = 0
+        return lab, geo, (window, mx, my), raised
+
+    def labels(self, pose, T_vehicle_camera, vehicles=()) -> np.ndarray:
+        lab, *_ = self._ground_labels(pose, T_vehicle_camera)
         for hull, _, _ in self._vehicle_items(pose, T_vehicle_camera, vehicles):
             cv2.fillPoly(lab, [hull], 0)
         return lab
 
     def render(self, pose, T_vehicle_camera, t_s: float, vehicles=()):
         """(rgb uint8 (H, W, 3), labels uint8 (H, W)) of one frame."""
-        lab, geo, (window, mx, my) = self.labeler.labels(pose, T_vehicle_camera)
-        raised = self._raised(pose, T_vehicle_camera, geo, window, mx, my)
-        if raised is not None:
-            lab[raised[1]] = 0
+        lab, geo, (window, mx, my), raised = self._ground_labels(pose, T_vehicle_camera)
         rgb = self._ground(geo, window, mx, my, t_s, raised)
         rgb = self._sky(rgb, geo, pose)
         rgb = self._vehicles(rgb, lab, pose, T_vehicle_camera, vehicles)
