@@ -101,13 +101,11 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
         opt.zero_grad()
         loss.backward()
         opt.step()
-        losses.append(loss.detach())
+        losses.append(loss.detach())  # no device sync per step
         step += 1
         if step % 100 == 0:
-            losses = [float(v) for v in losses]  # one device sync per 100 steps
             logger.info("step %d  %.0f s  lr %.4f  loss %.4f", step, elapsed, _lr(frac),
-                        float(np.mean(losses[-100:])))
-    losses = [float(v) for v in losses]
+                        _mean_loss(losses))
     model.eval()
     val_iou = _validate(model, x_all[:n_val], y_all[:n_val])
     logger.info("validation IoU (procedural towns, held out): %s", val_iou)
@@ -119,11 +117,18 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
     return {
         "steps": step, "train_s": round(time.perf_counter() - t0, 1), "frames": len(frames),
         "params": count_parameters(model), "class_weights": np.round(weights, 3).tolist(),
-        "final_loss": float(np.mean(losses[-100:])) if losses else None,
+        "final_loss": _mean_loss(losses) if losses else None,
         "val_iou_town": val_iou, "onnx_max_abs_diff": max_diff, "onnx_argmax_agreement": agree,
         "model_bytes": model_path.stat().st_size, "seed": seed, "device": device,
         "batch": batch,
     }
+
+
+def _mean_loss(losses: list) -> float:
+    """Mean of the last 100 step losses (0-d tensors): one device sync."""
+    import torch
+
+    return float(torch.stack(losses[-100:]).mean())
 
 
 def _lr(frac: float) -> float:
