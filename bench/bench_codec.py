@@ -1,6 +1,6 @@
 """Tile codec benchmark: map size per km of road and fidelity, side by side in one run:
 raw sparse grid (uint32 cell + uint8 class per labelled cell), PNG of the label raster, zlib of the
-raster (raw/1), and our contour codec (contour/1); plus compression/decompression time per tile.
+raster (raw/1), and our contour codec (contour/2); plus compression/decompression time per tile.
 
     python bench/bench_codec.py --out DIR [--quick] [--world SPEC]   -> DIR/codec.json
 
@@ -107,9 +107,14 @@ def measure(tiles: dict, km: float) -> dict:
         sizes["raw_zlib"] += len(encode_raw(labels))
     src = np.concatenate([tiles[t] for t in tiles], axis=1)
     dec = np.concatenate([decoded[t] for t in tiles], axis=1)
+    exact = per_class_precision_recall(dec, src, tol_cells=0)
     fidelity = {
         name: {"precision": round(v["precision"], 4), "recall": round(v["recall"], 4),
-               "cells": v["cells_true"]}
+               "cells": v["cells_true"],
+               # cell for cell (no tolerance), and decoded / source cell count: a codec that
+               # draws lines too wide passes the 0.1 m check but not these
+               "exact_iou": round(_iou(exact[name]), 4),
+               "area_ratio": round(exact[name]["cells_pred"] / max(v["cells_true"], 1), 3)}
         for name, v in per_class_precision_recall(dec, src, tol_cells=1).items()
     }
     return {
@@ -121,6 +126,12 @@ def measure(tiles: dict, km: float) -> dict:
         "compress_ms": _quantiles(enc_ms),
         "decompress_ms": _quantiles(dec_ms),
     }
+
+
+def _iou(pr: dict) -> float:
+    tp = pr["recall"] * pr["cells_true"]
+    union = pr["cells_true"] + pr["cells_pred"] - tp
+    return float(tp / union) if union else float("nan")
 
 
 def _quantiles(ms: list[float]) -> dict:

@@ -9,7 +9,7 @@ and (--world) accuracy on a simulated production drive.
 
 A seeded synthetic production drive along a two-lane road with stop lines, crosswalks and arrows
 (tests/localizer/synthetic.py): the map is the ground-truth raster coded with common.contours
-(contour/1) and decoded as the localizer does; the frame points come from the decoded map seen at
+(contour/2) and decoded as the localizer does; the frame points come from the decoded map seen at
 the true pose with noise and outliers (segmentation excluded). Timings on one core, in-process."""
 
 import argparse
@@ -128,7 +128,7 @@ def run(quick: bool = False) -> dict:
             "synthetic_accuracy": {
                 k: m[k] for k in ("x_m", "y_m", "yaw_deg", "availability_0_5m", "convergence_s")
             },
-            "note": "synthetic straight road, ground-truth map coded contour/1; one core; "
+            "note": "synthetic straight road, ground-truth map coded contour/2; one core; "
             "segmentation excluded",
         },
     }

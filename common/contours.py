@@ -1,4 +1,4 @@
-"""Tile codecs: the contour codec ("contour/1", paper IV-D/E) and the raw raster codec ("raw/1").
+"""Tile codecs: the contour codec ("contour/2", paper IV-D/E) and the raw raster codec ("raw/1").
 
 Contour codec: per class, the label mask -> contours with holes (cv2.findContours RETR_CCOMP) ->
 simplified polygons (approxPolyDP) in integer cell coordinates (x = col, y = row) -> delta +
@@ -10,7 +10,14 @@ smoothed union of all labelled cells (paint included, so no holes where paint li
 with a large tolerance; the paint classes drawn after it restore the exact marking cells. Each
 8-connected piece of paint is closed with a 3x3 kernel on its own (fills the one-cell notches that
 voting leaves on paint edges, every added cell touches a source cell, and neighbouring zebra
-stripes are never bridged) and simplified to 1.5 cells. This keeps per-class
+stripes are never bridged) and simplified to 1.5 cells.
+
+Thin elongated paint (lane lines, dashes, stop lines) is coded as a centre polyline and a width
+instead of an outline: half the points. contour/2 gives both in half cells and draws them back
+exactly (every cell whose centre lies within width/2 of the polyline), so a 2-cell line decodes
+2 cells wide. contour/1 drew them with cv2.polylines, whose thickness is effectively odd only
+(2 -> 3 cells, 4 -> 5): its lines came back up to 50 % fat, which pulled ICP towards the wide side
+of a line. contour/1 tiles (magic RMC1) still decode. This keeps per-class
 precision/recall at 0.1 m tolerance >= 0.97 against the source raster (measured >= 0.999 on
 merged noisy maps: bench/bench_codec.py) at 7-8 KB per km of road.
 """
@@ -25,10 +32,13 @@ from common.classes import NUM_CLASSES, Cls
 from common.errors import CodecError
 from common.grid import TILE_CELLS
 
-CODEC = "contour/1"
+CODEC = "contour/2"
+LEGACY_CODECS = ("contour/1",)  # still decoded (dispatch by magic): stores written before v2
 RAW_CODEC = "raw/1"
 
-MAGIC = b"RMC1"
+MAGIC = b"RMC2"
+LEGACY_MAGIC = b"RMC1"
+LINE_UNIT = 2  # contour/2 line vertices and widths are in 1/LINE_UNIT cells
 _ZLIB, _LZMA = 0, 1
 ENCODED_CLASSES = (Cls.ROAD, Cls.LANE_LINE, Cls.STOP_LINE, Cls.CROSSWALK, Cls.GROUND_SIGN)
 
@@ -37,7 +47,8 @@ CLOSE_MARKINGS = True  # 3x3 closing of paint masks before tracing
 USE_LINES = True  # thin paint as centre polyline + thickness where that reproduces it
 LINE_EPSILON_CELLS = 1.5  # centre line simplification (the per-piece check guards fidelity)
 LINE_MAX_WIDTH_CELLS = 6.0
-LINE_MAX_THICKNESS = 16
+LINE_MAX_THICKNESS = 16  # cells
+LINE_PIECE_CELLS = 16  # exact line drawing: segments are split into pieces this long
 LINE_FIDELITY = 0.98  # per piece, at 1-cell tolerance, or the piece is traced as a polygon
 MARKING_MIN_AREA_CELLS = 0  # paint specks below this many cells are dropped
 ROAD_EPSILON_CELLS = 3.0  # road surface: coarse
@@ -139,7 +150,7 @@ def _paint_components(mask: np.ndarray, epsilon: float, min_area: float):
         sub = (lab[y0 : y + h + 1, x0 : x + w + 1] == i).astype(np.uint8)
         line = _centre_line(sub, LINE_EPSILON_CELLS) if USE_LINES else None
         if line is not None:
-            lines.append((line[0] + [x0, y0], line[1]))
+            lines.append((line[0] + np.array([x0, y0]) * LINE_UNIT, line[1]))
             continue
         if CLOSE_MARKINGS:
             sub = cv2.morphologyEx(sub, cv2.MORPH_CLOSE, kernel)
@@ -149,11 +160,13 @@ def _paint_components(mask: np.ndarray, epsilon: float, min_area: float):
 
 
 def _centre_line(sub: np.ndarray, epsilon: float):
-    """A thin, elongated piece of paint -> (polyline vertices (k, 2) int, thickness) or None.
+    """A thin, elongated piece of paint -> (polyline vertices (k, 2) int, width), both in
+    1/LINE_UNIT cells, or None.
 
     The cells are binned along their principal axis; the bin means form the centre line, which is
-    simplified (approxPolyDP, open) and drawn back with the mean width as thickness. Accepted only
-    if the drawing matches the piece at 1-cell tolerance (precision and recall >= LINE_FIDELITY)."""
+    simplified (approxPolyDP, open). Widths around the mean width (len / length) are drawn back
+    exactly; the one with fewest wrong cells wins if it matches the piece at 1-cell tolerance
+    (precision and recall >= LINE_FIDELITY), else the piece is traced as a polygon."""
     ys, xs = np.nonzero(sub)
     if len(xs) < 8:
         return None
@@ -176,14 +189,24 @@ def _centre_line(sub: np.ndarray, epsilon: float):
     verts = verts.reshape(-1, 2).astype(np.float64)
     if len(verts) < 2:
         verts = centre[[0, -1]]
-    thickness = int(np.clip(np.round(width), 1, LINE_MAX_THICKNESS))
-    _pull_ends(verts, (thickness - 1) / 2.0)  # round caps reach past the end vertices
-    verts = np.round(verts).astype(np.int64)
     pad = LINE_MAX_THICKNESS
     target = cv2.copyMakeBorder(sub, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
-    drawn = np.zeros_like(target)
-    _draw_line(drawn, (verts + pad).astype(np.int32), thickness)
-    return (verts, thickness) if _matches(drawn, target) else None
+    best = None
+    w0 = int(round(width * LINE_UNIT))
+    for w in (w0, w0 - 1, w0 + 1):
+        if not 1 <= w <= LINE_MAX_THICKNESS * LINE_UNIT:
+            continue
+        v = verts.copy()
+        _pull_ends(v, (w / LINE_UNIT - 1.0) / 2.0)  # round caps reach past the end vertices
+        v = np.round(v * LINE_UNIT).astype(np.int64)
+        drawn = np.zeros_like(target)
+        _draw_exact_line(drawn, v + pad * LINE_UNIT, w)
+        if not _matches(drawn, target):
+            continue
+        wrong = int((drawn != target).sum())
+        if best is None or wrong < best[0]:
+            best = (wrong, v, w)
+    return None if best is None else (best[1], best[2])
 
 
 def _pull_ends(verts: np.ndarray, by: float) -> None:
@@ -195,8 +218,39 @@ def _pull_ends(verts: np.ndarray, by: float) -> None:
             verts[end] += seg / n * min(by, n / 2.0)
 
 
-def _draw_line(mask: np.ndarray, verts: np.ndarray, thickness: int) -> None:
-    cv2.polylines(mask, [verts.reshape(-1, 1, 2)], False, 1, thickness=int(thickness))
+def _draw_exact_line(mask: np.ndarray, verts: np.ndarray, width: int) -> None:
+    """Set every cell of `mask` whose centre lies within width/2 of the polyline (vertices and
+    width in 1/LINE_UNIT cells; cell centres at integer coordinates, x = col, y = row).
+
+    Vectorised over pieces of at most LINE_PIECE_CELLS, each tested on a fixed square window."""
+    p = verts.astype(np.float64) / LINE_UNIT
+    r = width / (2.0 * LINE_UNIT)
+    a, b = p[:-1], p[1:]
+    n = np.maximum(np.ceil(np.hypot(*(b - a).T) / LINE_PIECE_CELLS), 1).astype(np.int64)
+    seg = np.repeat(np.arange(len(a)), n)
+    k = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+    d = b[seg] - a[seg]
+    pa = a[seg] + d * (k / n[seg])[:, None]
+    d = d / n[seg][:, None]
+    lo = np.floor(np.minimum(pa, pa + d) - r).astype(np.int64)
+    off = np.arange(int(np.ceil(LINE_PIECE_CELLS + 2.0 * r)) + 2)
+    xs = lo[:, 0, None, None] + off[None, None, :]  # (pieces, 1, size)
+    ys = lo[:, 1, None, None] + off[None, :, None]  # (pieces, size, 1)
+    ax, ay = pa[:, 0, None, None], pa[:, 1, None, None]
+    dx, dy = d[:, 0, None, None], d[:, 1, None, None]
+    norm = np.maximum(dx * dx + dy * dy, 1e-12)
+    t = np.clip(((xs - ax) * dx + (ys - ay) * dy) / norm, 0.0, 1.0)
+    inside = (xs - ax - t * dx) ** 2 + (ys - ay - t * dy) ** 2 <= r * r + 1e-9
+    h, w = mask.shape
+    inside &= (xs >= 0) & (xs < w) & (ys >= 0) & (ys < h)
+    i, yy, xx = np.nonzero(inside)
+    mask[ys[i, yy, 0], xs[i, 0, xx]] = 1
+
+
+def _draw_legacy_line(mask: np.ndarray, verts: np.ndarray, thickness: int) -> None:
+    """contour/1 lines: integer cell vertices drawn by cv2.polylines."""
+    cv2.polylines(mask, [verts.astype(np.int32).reshape(-1, 1, 2)], False, 1,
+                  thickness=int(thickness))
 
 
 def _matches(drawn: np.ndarray, sub: np.ndarray) -> bool:
@@ -258,9 +312,13 @@ def encode_tile(
     epsilon_cells: float = MARKING_EPSILON_CELLS,
     min_area_cells: float = MARKING_MIN_AREA_CELLS,
 ) -> bytes:
-    """(512, 512) uint8 label raster -> compressed contour bytes (codec "contour/1")."""
+    """(512, 512) uint8 label raster -> compressed contour bytes (codec "contour/2").
+
+    Payload: varint n_head, head (structure ints: per class, the polygon components with their
+    ring sizes, then the lines with their vertex count and width), varint n_rings_bytes, ring
+    points (cells), line vertices (1/LINE_UNIT cells); each point stream delta + zigzag coded."""
     labels = _check_labels(labels)
-    structure, rings = [], []
+    structure, rings, lines_pts = [], [], []
     for _cls, comps, lines in _class_plan(labels, epsilon_cells, min_area_cells):
         structure.append(len(comps))
         for comp in comps:
@@ -269,14 +327,19 @@ def encode_tile(
                 structure.append(len(ring))
                 rings.append(ring)
         structure.append(len(lines))
-        for verts, thickness in lines:
-            structure += [len(verts), thickness]
-            rings.append(verts)
-    points = np.concatenate(rings) if rings else np.zeros((0, 2), dtype=np.int64)
-    deltas = np.diff(np.concatenate([[[0, 0]], points]), axis=0)
+        for verts, width in lines:
+            structure += [len(verts), width]
+            lines_pts.append(verts)
     head = varint_encode(np.asarray(structure, dtype=np.uint64))
-    payload = varint_encode([len(head)]) + head + varint_encode(_zigzag(deltas.ravel()))
+    ring_bytes = _point_stream(rings)
+    payload = (varint_encode([len(head)]) + head + varint_encode([len(ring_bytes)]) + ring_bytes
+               + _point_stream(lines_pts))
     return _compress(payload)
+
+
+def _point_stream(arrays: list[np.ndarray]) -> bytes:
+    points = np.concatenate(arrays) if arrays else np.zeros((0, 2), dtype=np.int64)
+    return varint_encode(_zigzag(np.diff(np.concatenate([[[0, 0]], points]), axis=0).ravel()))
 
 
 def _compress(payload: bytes) -> bytes:
@@ -287,13 +350,18 @@ def _compress(payload: bytes) -> bytes:
     return MAGIC + (bytes([_ZLIB]) + z if len(z) <= len(x) else bytes([_LZMA]) + x)
 
 
-def _decompress(data: bytes) -> bytes:
+def _decompress(data: bytes) -> tuple[int, bytes]:
+    """-> (format version 1 | 2, payload)."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise CodecError("contour tile: expected bytes")
     data = bytes(data)
-    if len(data) < len(MAGIC) + 1 or data[: len(MAGIC)] != MAGIC:
-        raise CodecError(f"contour tile: expected magic {MAGIC!r} ({CODEC})")
-    method, body = data[len(MAGIC)], data[len(MAGIC) + 1 :]
+    if len(data) < len(MAGIC) + 1 or data[: len(MAGIC)] not in (MAGIC, LEGACY_MAGIC):
+        raise CodecError(f"contour tile: expected magic {MAGIC!r} ({CODEC}) or {LEGACY_MAGIC!r}")
+    version = 2 if data[: len(MAGIC)] == MAGIC else 1
+    return version, _inflate(data[len(MAGIC)], data[len(MAGIC) + 1 :])
+
+
+def _inflate(method: int, body: bytes) -> bytes:
     try:
         if method == _ZLIB:
             d = zlib.decompressobj()
@@ -312,57 +380,77 @@ def _decompress(data: bytes) -> bytes:
     raise CodecError(f"contour tile: unknown compressor id {method}")
 
 
-def _parse(payload: bytes) -> tuple[list[int], np.ndarray]:
-    """payload -> (structure ints, absolute points (n, 2))."""
-    b = np.frombuffer(payload, dtype=np.uint8)
-    ends = np.flatnonzero(b < 0x80)
-    if ends.size == 0:
-        raise CodecError("contour tile: empty payload")
-    n_head = int(varint_decode(payload[: ends[0] + 1])[0])
-    start = int(ends[0]) + 1
-    if start + n_head > len(payload):
+def _parse(payload: bytes, version: int) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """payload -> (structure ints, ring points (n, 2), line vertices (m, 2)); in contour/1 one
+    stream holds both (the caller splits it)."""
+    n_head, pos = _leading_varint(payload, 0)
+    if pos + n_head > len(payload):
         raise CodecError("contour tile: structure longer than the payload")
-    structure = [int(v) for v in varint_decode(payload[start : start + n_head])]
-    deltas = _unzigzag(varint_decode(payload[start + n_head :]))
+    structure = [int(v) for v in varint_decode(payload[pos : pos + n_head])]
+    pos += n_head
+    if version == 1:
+        points = _points(payload[pos:], TILE_CELLS)
+        return structure, points, points
+    n_rings, pos = _leading_varint(payload, pos)
+    if pos + n_rings > len(payload):
+        raise CodecError("contour tile: ring stream longer than the payload")
+    rings = _points(payload[pos : pos + n_rings], TILE_CELLS)
+    return structure, rings, _points(payload[pos + n_rings :], TILE_CELLS * LINE_UNIT)
+
+
+def _leading_varint(payload: bytes, pos: int) -> tuple[int, int]:
+    """The varint at payload[pos:] -> (value, position after it)."""
+    for i, byte in enumerate(payload[pos : pos + 5]):
+        if byte < 0x80:
+            return int(varint_decode(payload[pos : pos + i + 1])[0]), pos + i + 1
+    raise CodecError("contour tile: payload ends early or holds an over-long varint")
+
+
+def _points(stream: bytes, limit: int) -> np.ndarray:
+    deltas = _unzigzag(varint_decode(stream))
     if deltas.size % 2:
         raise CodecError("contour tile: odd number of coordinates")
     points = np.cumsum(deltas.reshape(-1, 2), axis=0)
-    if points.size and (points.min() < 0 or points.max() >= TILE_CELLS):
-        raise CodecError(f"contour tile: point outside [0, {TILE_CELLS})")
-    return structure, points
+    if points.size and (points.min() < 0 or points.max() >= limit):
+        raise CodecError(f"contour tile: point outside [0, {limit})")
+    return points
 
 
-def _rings_by_class(structure: list[int], n_points: int):
-    """Walk the structure ints -> [(cls, [[n_outer, n_hole...], ...], [(n_verts, thickness)])]
-    and check every count."""
-    it, used, out = iter(structure), 0, []
+def _rings_by_class(structure: list[int], n_rings: int, n_lines: int, version: int):
+    """Walk the structure ints -> [(cls, [[n_outer, n_hole...], ...], [(n_verts, width)])]
+    and check every count (contour/1: rings and lines share one stream of n_rings points)."""
+    max_width = LINE_MAX_THICKNESS * (LINE_UNIT if version == 2 else 1)
+    it, used_rings, used_lines, out = iter(structure), 0, 0, []
     try:
         for cls in ENCODED_CLASSES:
             comps = []
             for _ in range(_bounded(next(it), "components")):
-                n_rings = _bounded(next(it), "rings")
-                if n_rings < 1:
+                n = _bounded(next(it), "rings")
+                if n < 1:
                     raise CodecError("contour tile: a component needs an outer ring")
-                sizes = [_bounded(next(it), "points") for _ in range(n_rings)]
+                sizes = [_bounded(next(it), "points") for _ in range(n)]
                 if min(sizes) < 1:
                     raise CodecError("contour tile: empty ring")
-                used += sum(sizes)
+                used_rings += sum(sizes)
                 comps.append(sizes)
             lines = []
             for _ in range(_bounded(next(it), "lines")):
-                n_verts, thickness = _bounded(next(it), "vertices"), next(it)
-                if n_verts < 2 or not 1 <= thickness <= LINE_MAX_THICKNESS:
-                    raise CodecError("contour tile: a line needs >= 2 vertices and a thickness "
-                                     f"in [1, {LINE_MAX_THICKNESS}]")
-                used += n_verts
-                lines.append((n_verts, thickness))
+                n_verts, width = _bounded(next(it), "vertices"), next(it)
+                if n_verts < 2 or not 1 <= width <= max_width:
+                    raise CodecError("contour tile: a line needs >= 2 vertices and a width "
+                                     f"in [1, {max_width}]")
+                used_lines += n_verts
+                lines.append((n_verts, width))
             out.append((int(cls), comps, lines))
     except StopIteration as exc:
         raise CodecError("contour tile: structure ends early") from exc
     if next(it, None) is not None:
         raise CodecError("contour tile: trailing structure data")
-    if used != n_points:
-        raise CodecError(f"contour tile: structure names {used} points, stream has {n_points}")
+    if version == 1:
+        used_rings, n_lines = used_rings + used_lines, used_lines
+    if used_rings != n_rings or used_lines != n_lines:
+        raise CodecError(f"contour tile: structure names {used_rings} + {used_lines} points, "
+                         f"streams hold {n_rings} + {n_lines}")
     return out
 
 
@@ -373,22 +461,33 @@ def _bounded(v: int, what: str) -> int:
 
 
 def decode_tile(data: bytes) -> np.ndarray:
-    """Contour bytes -> (512, 512) uint8 labels; any malformed input raises CodecError."""
-    structure, points = _parse(_decompress(data))
+    """Contour bytes (contour/2, or legacy contour/1) -> (512, 512) uint8 labels; any malformed
+    input raises CodecError."""
+    version, payload = _decompress(data)
+    structure, rings, line_pts = _parse(payload, version)
+    plan = _rings_by_class(structure, len(rings), len(line_pts), version)
     labels = np.zeros((TILE_CELLS, TILE_CELLS), dtype=np.uint8)
-    pts = points.astype(np.int32)
-    offset = 0
-    for cls, comps, lines in _rings_by_class(structure, len(points)):
+    rings, line_pts = rings.astype(np.int32), line_pts.astype(np.int32)
+    shared = version == 1  # contour/1: one stream, in plan order
+    i_ring = i_line = 0
+    for cls, comps, lines in plan:
         mask = np.zeros_like(labels)
         for sizes in comps:
-            rings = []
+            comp = []
             for n in sizes:
-                rings.append(pts[offset : offset + n].reshape(-1, 1, 2))
-                offset += n
-            _paint_component(mask, rings)
-        for n, thickness in lines:
-            _draw_line(mask, pts[offset : offset + n], thickness)
-            offset += n
+                comp.append(rings[i_ring : i_ring + n].reshape(-1, 1, 2))
+                i_ring += n
+            _paint_component(mask, comp)
+        if shared:
+            i_line = i_ring
+        for n, width in lines:
+            if shared:
+                _draw_legacy_line(mask, line_pts[i_line : i_line + n], width)
+            else:
+                _draw_exact_line(mask, line_pts[i_line : i_line + n], width)
+            i_line += n
+        if shared:
+            i_ring = i_line
         labels[mask > 0] = cls
     return labels
 

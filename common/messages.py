@@ -40,7 +40,7 @@ class IngestAck:
 class Tile:
     tile: tuple[int, int]
     version: int  # monotonic per tile
-    codec: str  # name/version of the tile codec, e.g. "contour/1"
+    codec: str  # name/version of the tile codec, e.g. "contour/2"
     data: bytes
     classes: list[int] = field(default_factory=lambda: list(range(NUM_CLASSES)))
 

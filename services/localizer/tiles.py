@@ -1,5 +1,6 @@
 """Tile access for the localizer: which tiles to hold (around the car and ahead of it), decoding of
-the Tile messages ("contour/1" or "raw/1"), and the Zenoh client that fetches and follows them.
+the Tile messages ("contour/2", legacy "contour/1", or "raw/1"), and the Zenoh client that fetches
+and follows them.
 
 `tiles_needed` and `decode_tile_message` are pure; `TileClient` is the thin transport adapter and
 takes an open session (from common.bus.open_session)."""
@@ -11,7 +12,7 @@ import time
 import numpy as np
 
 from common import codec, keys
-from common.contours import CODEC, RAW_CODEC, decode_raw, decode_tile
+from common.contours import CODEC, LEGACY_CODECS, RAW_CODEC, decode_raw, decode_tile
 from common.errors import CodecError, TransportError
 from common.grid import TileId, tiles_around
 from common.messages import Tile
@@ -33,7 +34,7 @@ def tiles_needed(
 
 def decode_tile_message(msg: Tile) -> np.ndarray:
     """Tile message -> (512, 512) uint8 labels."""
-    if msg.codec == CODEC:
+    if msg.codec == CODEC or msg.codec in LEGACY_CODECS:  # decode_tile reads both
         return decode_tile(msg.data)
     if msg.codec == RAW_CODEC:
         return decode_raw(msg.data)

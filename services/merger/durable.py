@@ -6,7 +6,7 @@ import logging
 import threading
 
 from common import codec
-from common.contours import CODEC, RAW_CODEC, encode_raw
+from common.contours import CODEC, LEGACY_CODECS, RAW_CODEC, encode_raw
 from common.errors import CodecError, TileError
 from common.messages import IngestAck, IngestBatch, Stats, Tile
 from services.merger.shard import MergerShard, TileCodecCache, TileId
@@ -33,7 +33,9 @@ class DurableShard:
         """Replay the stored patches and tile versions; returns the number of patches replayed."""
         with self.lock:
             for tile, version, codec_name, data in self.store.load_tiles():
-                if codec_name == self.cache.codec:
+                # a tile stored by an older codec keeps its version (so versions never go
+                # back); replaying the patches below re-encodes it and bumps the version
+                if codec_name == self.cache.codec or codec_name in LEGACY_CODECS:
                     self.cache.restore(tile, version, data)
             chunk, n = [], 0
             for p in self.store.load_patches():

@@ -1,6 +1,6 @@
 """Localizer transport: tiles over a real local router, and `roadmap localize` end to end.
 
-The tile server is a real Zenoh queryable in a second session serving Tile messages (contour/1
+The tile server is a real Zenoh queryable in a second session serving Tile messages (contour/2
 and raw/1) on roadmap/tile/<tx>/<ty>, as a merger shard does."""
 
 import argparse

@@ -9,6 +9,7 @@ import pytest
 from common.classes import Cls
 from common.contours import (
     CODEC,
+    LEGACY_MAGIC,
     MAGIC,
     decode_raw,
     decode_tile,
@@ -31,7 +32,7 @@ def tile_labels():
 
 
 def test_codec_name():
-    assert CODEC == "contour/1"
+    assert CODEC == "contour/2"
 
 
 def test_synthetic_tile_has_every_marking_class(tile_labels):
@@ -100,17 +101,44 @@ def test_encode_rejects_wrong_shape_or_dtype():
         encode_tile(np.zeros((512, 512), np.int32))
 
 
-EMPTY = b"\x0a" + b"\x00" * 10  # 5 classes x (0 polygons, 0 lines)
+HEAD0 = b"\x0a" + b"\x00" * 10  # 5 classes x (0 polygons, 0 lines)
+EMPTY = HEAD0 + b"\x00"  # ... and an empty ring stream, an empty line stream
+LINE_HEAD = b"\x0c" + bytes([0, 0, 0, 1, 2, 4] + [0] * 6)  # one lane line: 2 vertices, width 4
 
 
-def _z(payload: bytes) -> bytes:
-    return MAGIC + b"\x00" + zlib.compress(payload)
+def _z(payload: bytes, magic: bytes = MAGIC) -> bytes:
+    return magic + b"\x00" + zlib.compress(payload)
 
 
 def test_minimal_empty_payload_decodes():  # the positive control for the vectors below
     assert not decode_tile(_z(EMPTY)).any()
+    # (10, 11) -> (30, 11) in half cells = (5, 5.5) -> (15, 5.5), 2 cells wide: the cells whose
+    # centres lie within 1 cell of it are rows 5 and 6 of columns 5..15
+    line = decode_tile(_z(LINE_HEAD + b"\x00" + bytes([20, 22, 40, 0])))
+    assert (line == Cls.LANE_LINE).sum() == 2 * 11
+    assert (line[5:7, 5:16] == Cls.LANE_LINE).all()
+
+
+def test_exact_line_widths_round_trip():
+    """contour/2 lines come back as wide as they went in (contour/1 made 2 cells 3, 4 cells 5)."""
+    for width in (1, 2, 3, 4, 5):
+        labels = np.zeros((512, 512), np.uint8)
+        labels[100:400, 60:300] = Cls.ROAD
+        labels[120:380, 100 : 100 + width] = Cls.LANE_LINE  # straight
+        rows = np.arange(150, 350)
+        for k in range(width):  # and slanted, 1 in 4
+            labels[rows, 200 + (rows - 150) // 4 + k] = Cls.LANE_LINE
+        decoded = decode_tile(encode_tile(labels))
+        exact = per_class_precision_recall(decoded, labels, tol_cells=0)["lane_line"]
+        assert exact["precision"] >= 0.9 and exact["recall"] >= 0.9, (width, exact)
+        assert 0.9 <= exact["cells_pred"] / exact["cells_true"] <= 1.1, (width, exact)
+
+
+def test_legacy_contour1_tiles_still_decode():
+    # contour/1: one point stream, line vertices in cells, cv2 thickness
     two_points = b"\x0c" + bytes([0, 0, 0, 1, 2, 2] + [0] * 6) + b"\x14\x14\x14\x00"
-    assert (decode_tile(_z(two_points)) == Cls.LANE_LINE).sum() > 10
+    assert (decode_tile(_z(two_points, LEGACY_MAGIC)) == Cls.LANE_LINE).sum() > 10
+    assert not decode_tile(_z(HEAD0, LEGACY_MAGIC)).any()
 
 
 @pytest.mark.parametrize(
@@ -119,16 +147,23 @@ def test_minimal_empty_payload_decodes():  # the positive control for the vector
         b"",
         b"garbage",
         MAGIC,
+        b"RMC9\x00" + zlib.compress(EMPTY),  # unknown format
         MAGIC + b"\x07" + b"x",  # unknown compressor
         MAGIC + b"\x00" + b"not zlib",
         MAGIC + b"\x00" + zlib.compress(b"\x80"),  # truncated varint
         _z(b"\x05\x01\x01\x01\x01\x01"),  # structure ends early
+        _z(HEAD0),  # no ring stream length
+        _z(HEAD0 + b"\x05"),  # ring stream longer than the payload
         _z(EMPTY + b"\x02"),  # odd number of coordinates
-        _z(b"\x0c" + bytes([1, 1, 1, 0] + [0] * 8) + b"\x02\x02\x02\x02"),  # 1 point named, 2 sent
-        _z(b"\x0c" + bytes([1, 1, 1, 0] + [0] * 8) + b"\x03\x00"),  # negative coordinate
-        _z(b"\x0c" + bytes([0, 0, 0, 1, 2, 0] + [0] * 6) + b"\x02" * 4),  # line thickness 0
-        _z(b"\x0b" + b"\x00" * 11),  # trailing structure
+        _z(b"\x0c" + bytes([1, 1, 1, 0] + [0] * 8) + b"\x04\x02\x02\x02\x02"),  # 1 named, 2 sent
+        _z(b"\x0c" + bytes([1, 1, 1, 0] + [0] * 8) + b"\x02\x03\x00"),  # negative coordinate
+        _z(LINE_HEAD[:6] + b"\x00" + LINE_HEAD[7:] + b"\x00" + b"\x02" * 4),  # width 0
+        _z(LINE_HEAD[:6] + b"\x21" + LINE_HEAD[7:] + b"\x00" + b"\x02" * 4),  # width 33
+        _z(LINE_HEAD + b"\x00" + b"\x02\x02"),  # a line of 2 vertices, 1 sent
+        _z(LINE_HEAD + b"\x00" + bytes([0x80, 0x10, 2, 2, 2, 2])),  # vertex past the tile
+        _z(b"\x0b" + b"\x00" * 11 + b"\x00"),  # trailing structure
         _z(EMPTY) + b"tail",  # trailing bytes after the stream
+        _z(bytes([0, 0, 0, 1, 2, 2] + [0] * 6), LEGACY_MAGIC),  # legacy: no head length
         MAGIC + b"\x00" + zlib.compress(b"\x00" * 20_000_000),  # decompression bomb
     ],
 )

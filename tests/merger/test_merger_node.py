@@ -125,7 +125,7 @@ def test_ingest_tiles_stats_updates_and_bad_input(router, merger):
         assert after["tile_list"] == "0,0;0,1;1,0" and after["tiles"] == 3
         (data,) = _get(session, keys.tile(0, 0))
         tile = codec.decode(data, expect=Tile)
-        assert tile.codec == "contour/1" and tile.version >= 1
+        assert tile.codec == "contour/2" and tile.version >= 1
         assert (decode_tile(tile.data) == lane_tile()).mean() > 0.99
         assert _get(session, keys.tile(0, 0) + f"?since={tile.version}") == []
         assert len(_get(session, keys.tile(0, 0) + f"?since={tile.version - 1}")) == 1

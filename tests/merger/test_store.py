@@ -56,7 +56,7 @@ def test_tile_versions_grow_and_decode(tmp_path):
     durable.ingest(codec.encode(IngestBatch(_batches()[2])))
     durable.flush()
     tile = durable.tile((0, 0))
-    assert tile.version == 1 and tile.codec == "contour/1"
+    assert tile.version == 1 and tile.codec == "contour/2"
     assert (decode_tile(tile.data) == lane_tile()).mean() > 0.99
     for k in range(3):  # a repaint seen by three newer traversals
         durable.ingest(codec.encode(IngestBatch(patches_from_labels(
@@ -132,3 +132,19 @@ def test_group_commit_acks_each_batch_on_its_own(tmp_path):
         durable.ingest_many([codec.encode(IngestBatch(p)) for p in _batches()[4:8:2]])
     assert durable.shard.counters["patches_applied"] == len(a) + len(b)
     durable.store.close()
+
+
+def test_a_store_written_by_the_older_codec_keeps_its_tile_versions_growing(tmp_path):
+    """contour/1 tiles in the store: the restart re-encodes them as contour/2 under a newer version
+    (a localizer holding version v must never be offered a lower one)."""
+    path = tmp_path / "s0.sqlite"
+    first = _open(path)
+    first.ingest(codec.encode(IngestBatch(_batches()[0])))
+    first.flush()
+    first.store.save_tiles([((0, 0), 7, "contour/1", b"RMC1 legacy bytes")])
+    first.store.close()
+    second = _open(path)
+    tile = second.tile((0, 0))
+    assert tile.codec == "contour/2" and tile.version == 8
+    assert (decode_tile(tile.data) == lane_tile()).mean() > 0.99
+    second.store.close()
