@@ -24,6 +24,7 @@ logger = logging.getLogger(__name__)
 MATCH_CLASSES = (Cls.ROAD, Cls.LANE_LINE, Cls.STOP_LINE, Cls.CROSSWALK, Cls.GROUND_SIGN)
 NO_MATCH = -128  # int8 sentinel: no map cell of the class within reach
 MAX_OFFSET_CELLS = 127
+LINE_GROW_CELLS = 5  # default widening of the lane-line likelihood field (TileCache)
 
 
 @dataclass
@@ -64,10 +65,24 @@ def nearest_offsets(mask_hw: np.ndarray) -> np.ndarray:
 class TileCache:
     """LRU of decoded tiles (labels + version) and their lazily built matching fields."""
 
-    def __init__(self, capacity: int = 25, margin_cells: int = 30, field_sigma_cells: float = 1.5):
+    def __init__(
+        self,
+        capacity: int = 25,
+        margin_cells: int = 30,
+        field_sigma_cells: float = 1.5,
+        line_grow_cells: int = LINE_GROW_CELLS,
+    ):
+        """line_grow_cells: the lane-line mask is dilated by this square kernel before it is
+        blurred into the likelihood field (the nearest-cell offsets keep the exact mask). A
+        0.15 m line blurred by 0.15 m is a sharp ridge the refinement overshoots and that
+        rewards points on the line's crest only; widened to 0.55 m it is a plateau with soft
+        flanks, still centred on the line. Measured on the Karlsruhe demo drive, fleet map,
+        contour/2: grow 1 -> 5 -> 7: x 0.075 -> 0.046 -> 0.053 m, y 0.064 -> 0.027 -> 0.032 m, yaw
+        0.152 -> 0.083 -> 0.097 deg."""
         self.capacity = int(capacity)
         self.margin = int(margin_cells)
         self.field_sigma_cells = float(field_sigma_cells)
+        self.line_grow_cells = int(line_grow_cells)
         self._labels: OrderedDict[TileId, tuple[int, np.ndarray]] = OrderedDict()
         self._fields: dict[TileId, TileFields] = {}
         self.fields_built = 0
@@ -145,6 +160,9 @@ class TileCache:
                 continue
             present[slot] = True
             offsets[slot] = nearest_offsets(mask)[:, m : m + n, m : m + n]
+            if cls == Cls.LANE_LINE and self.line_grow_cells > 1:
+                k = np.ones((self.line_grow_cells, self.line_grow_cells), np.uint8)
+                mask = cv2.dilate(mask.astype(np.uint8), k) > 0  # the field only: see __init__
             smooth[slot] = likelihood_field(mask, self.field_sigma_cells)[m : m + n, m : m + n]
         return TileFields(tile, self.version(tile), offsets, present, smooth)
 

@@ -44,7 +44,7 @@ def main(args, cfg) -> int:
 def localize_log(log: DriveLog, cfg, session, vehicle: str, out: Path) -> dict:
     """Localize every frame of a log; writes the outputs and returns the localization section."""
     lc = cfg.localizer
-    cache = TileCache(capacity=lc.cache_tiles)
+    cache = TileCache(capacity=lc.cache_tiles, line_grow_cells=lc.field_line_grow_cells)
     client = TileClient(session, cache, codec_name=lc.map_codec, timeout_s=cfg.bus.query_timeout_s)
     publisher = session.declare_publisher(keys.pose(vehicle)) if lc.publish else None
     loc = get_localizer(lc, cache)
