@@ -56,6 +56,8 @@ class Localizer:
         track_gate_m: float = 1.5,
         calibration_rate: float = 0.0,
         reinit_gnss_rejections: int = 5,
+        rival_travel_m: float = 200.0,
+        rival_points: int = 4000,
         seed: int = 0,
     ):
         self.cache, self.icp, self.ekf, self.search = cache, icp, ekf, search
@@ -74,6 +76,12 @@ class Localizer:
         self.calibration = np.zeros(2)
         self.calibration_rate = calibration_rate
         self.reinit_gnss_rejections = reinit_gnss_rejections
+        # equally good poses left by an ambiguous initialization (solid or periodic dashed lines
+        # along a straight road), each with the dead-reckoned odometry pose at which it held, so
+        # it moves with the car; weighed on the submap until the map tells them apart
+        self.rivals: list[tuple[np.ndarray, np.ndarray]] = []
+        self.rival_travel_m, self.rival_points = rival_travel_m, rival_points
+        self.rivals_since_m = 0.0
         self.recent: deque = deque(maxlen=max(recent_frames, 1))  # tracking: multi-frame matching
         self._rng = np.random.default_rng(seed)
         self.t_ns: int | None = None
@@ -149,7 +157,10 @@ class Localizer:
             self.calibration[: len(result.attitude)] += self.calibration_rate * result.attitude
         diag = self._frame_diag(result, accepted)
         self._watch_integrity(result, accepted)
-        return Estimate(t_ns, self.ekf.vehicle_pose, self.ekf.cov, self.ekf.ok, diag)
+        if self.rivals and self.ekf.initialized:
+            diag["rivals"] = self._weigh_rivals()
+        ok = self.ekf.ok and not self.rivals  # an unresolved ambiguity is not a trusted pose
+        return Estimate(t_ns, self.ekf.vehicle_pose, self.ekf.cov, ok, diag)
 
     # -- steps ------------------------------------------------------------------------------
 
@@ -221,17 +232,69 @@ class Localizer:
         if runner is not None and runner[0] > best[0] - self.init_margin and not final:
             return {"state": "init_ambiguous", "overlap": best[0], "runner_up": runner[0]}
         self._start_filter(best[1])
+        self.rivals = [
+            (res.pose, self.odom.copy())
+            for overlap, res in _distinct(ranked)[1:]
+            if overlap > best[0] - self.init_margin
+        ]
+        self.rivals_since_m = self.travel_m
         return {
             "state": "initialized",
             "overlap": best[0],
             "runner_up": None if runner is None else runner[0],
+            "rivals": len(self.rivals),
         }
 
-    def _start_filter(self, res: IcpResult) -> None:
+    def _weigh_rivals(self) -> dict:
+        """Match the submap at the filter's pose and at each rival's (ICP-refined) every
+        `init_every` frames. A rival that beats the filter's match by `init_margin` takes over,
+        as does the filter's own match if it lands more than 1 m / 3 deg away (the filter
+        restarts there, with the prior odometry scale: the scale learnt on a wrong pose is
+        wrong); rivals beaten by the margin are dropped; after `rival_travel_m` without a
+        decision the filter's pose is kept."""
+        self.waiting_frames += 1
+        if self.waiting_frames % self.init_every:
+            return {"n": len(self.rivals)}
+        pts, cls = self._submap_points()
+        if len(pts) > self.rival_points:
+            idx = self._rng.choice(len(pts), self.rival_points, replace=False)
+            pts, cls = pts[idx], cls[idx]
+        slots = class_slots(cls)
+        starts = [self.ekf.pose] + [
+            se2_compose(pose, se2_between(odom, self.odom)) for pose, odom in self.rivals
+        ]
+        scored = []
+        for start in starts:
+            res = self.icp.register(pts, slots, start, self.cache)
+            overlap = fine_overlap(pts, slots, res.pose, self.cache) if res is not None else 0.0
+            scored.append((overlap, res))
+        if scored[0][1] is None:  # the filter's own pose does not match now: weigh later
+            return {"n": len(self.rivals), "overlaps": []}
+        kept = _distinct([(o, r) for o, r in scored if r is not None])  # own match first
+        top = max(kept, key=lambda c: c[0])  # the first of equals: the filter's own
+        best = top if top[0] > kept[0][0] + self.init_margin else kept[0]
+        # the winner's refined pose may also be the filter's own match landing elsewhere (the
+        # submap reaches back to a marking the filter's single frames no longer see)
+        switch = _far(best[1].pose, self.ekf.pose)
+        if switch:
+            logger.info("the submap matches better %s away (%.3f vs %.3f): restarting there",
+                        np.round(best[1].pose - self.ekf.pose, 2), best[0], kept[0][0])
+            self._start_filter(best[1], scale=1.0)
+        self.rivals = [
+            (r.pose, self.odom.copy())
+            for o, r in kept
+            if r is not best[1] and o > best[0] - self.init_margin
+        ]
+        if self.travel_m - self.rivals_since_m > self.rival_travel_m:
+            self.rivals = []
+        return {"n": len(self.rivals), "switched": switch,
+                "overlaps": [round(o, 3) for o, _ in scored]}
+
+    def _start_filter(self, res: IcpResult, scale: float | None = None) -> None:
         cov = res.cov.copy()
         cov[:2, :2] += np.eye(2) * self.init_sigma_m**2
         cov[2, 2] += math.radians(1.0) ** 2
-        self.ekf.reset(res.pose, cov)
+        self.ekf.reset(res.pose, cov, scale)
         self.bad_frames = self.waiting_frames = 0
         self.inits += 1
         logger.info("initialized at %s (init #%d)", np.round(res.pose, 2), self.inits)
@@ -311,19 +374,29 @@ class Localizer:
         logger.warning("localization diverged (%s): re-initializing", why)
         self.ekf.initialized = False
         self.ekf.gnss_rejections = self.ekf.pose_rejections = 0
+        self.rivals = []
         self.submap.clear()
         self.recent.clear()
         self.travel_m = 0.0
 
 
+def _distinct(ranked):
+    """(overlap, IcpResult) pairs with poses more than 1 m or 3 deg from every earlier one."""
+    out = []
+    for overlap, res in ranked:
+        if all(_far(res.pose, r.pose) for _, r in out):
+            out.append((overlap, res))
+    return out
+
+
+def _far(a: np.ndarray, b: np.ndarray) -> bool:
+    d = a - b
+    return np.hypot(d[0], d[1]) > 1.0 or abs(math.remainder(d[2], 2 * math.pi)) > math.radians(3)
+
+
 def _runner_up(ranked):
     """Best candidate more than 1 m or 3 deg away from the winner (None if there is none)."""
-    best = ranked[0][1].pose
-    for overlap, res in ranked[1:]:
-        d = res.pose - best
-        if np.hypot(d[0], d[1]) > 1.0 or abs(math.remainder(d[2], 2 * math.pi)) > math.radians(3):
-            return overlap, res
-    return None
+    return next(((o, r) for o, r in ranked[1:] if _far(r.pose, ranked[0][1].pose)), None)
 
 
 def _motion(v: float, w: float, dt: float) -> np.ndarray:

@@ -42,6 +42,25 @@ def test_icp_flags_parallel_lines_as_degenerate(rng):
     assert res.cov[0, 0] > 1.0 and res.cov[1, 1] < 0.01  # inflated along, trusted across
 
 
+def test_a_degenerate_match_gives_no_information_along_its_weak_direction():
+    """The along-road weak direction of a curved lane-line match mixes position and yaw; the
+    information handed to the filter must be blind along exactly that direction (it was along
+    a wrong one, and the filter's along-road sigma collapsed to millimetres)."""
+    from services.localizer.icp import _covariance
+
+    scale = np.array([1.0, 1.0, 8.0])  # (x, y, lever * yaw)
+    weak_s = np.array([0.0, 1.0, 0.3]) / np.hypot(1.0, 0.3)  # null direction, scaled coords
+    other = np.linalg.qr(np.column_stack([weak_s, [1.0, 0, 0], [0, 0, 1.0]]))[0][:, 1:]
+    Hs = other @ np.diag([50.0, 400.0]) @ other.T + 1e-9 * np.outer(weak_s, weak_s)
+    H = Hs * np.outer(scale, scale)
+    cov, inflation, _, weak, degenerate, info = _covariance(H, scale, 1e-3)
+    assert degenerate
+    assert np.allclose(weak, (weak_s / scale) / np.linalg.norm(weak_s / scale))
+    assert np.linalg.norm(info @ weak) < 1e-6 * np.linalg.norm(info)
+    assert np.allclose(info, H, atol=1e-6 * np.abs(H).max())  # nothing else is lost
+    assert weak @ (cov + inflation) @ weak > 20.0  # and the covariance is wide along it
+
+
 def test_ekf_converges_from_perturbed_start_and_wraps_angles(rng):
     f = PoseFilter()
     true = np.array([10.0, 5.0, math.pi - 0.01])  # heading near the +-pi seam
@@ -145,3 +164,50 @@ def test_ekf_learns_the_camera_yaw_offset(rng):
     assert abs(f.camera_yaw_rad - offset) < math.radians(0.05)
     assert abs(math.remainder(f.vehicle_pose[2] - true[2], 2 * math.pi)) < math.radians(0.05)
     assert np.hypot(*(f.vehicle_pose[:2] - true[:2])) < 0.05
+
+
+def test_an_ambiguous_start_keeps_its_rivals_until_the_map_tells_them_apart(rng):
+    """Solid lines only at the start: the along-road position is ambiguous; the filter starts on
+    the best candidate, keeps the others as rivals (its pose not ok meanwhile) and drops them
+    when the stop line comes into view."""
+    cache = fill_cache(TileCache(capacity=30), straight_road(dashed=False))
+    streams = synthetic_drive(rng, duration_s=3.0, start=(30.0, 28.25, 0.0),
+                              gnss_bias_m=(3.0, -1.0), weave_m=0.0)
+    loc = get_localizer(LocalizerConfig(), cache)
+    frames = [frame_points(cache, p, rng) for p in streams["frame_pose_true"]]
+    seen = {"rivals": 0, "ok_with_rivals": False}
+
+    def on_estimate(i, est):
+        seen["rivals"] = max(seen["rivals"], len(loc.rivals))
+        seen["ok_with_rivals"] |= est.ok and bool(loc.rivals)
+
+    est = replay(loc, streams, lambda i: frames[i], on_estimate)
+    assert seen["rivals"] >= 1 and not seen["ok_with_rivals"] and not loc.rivals
+    last = est[-1].pose - streams["frame_pose_true"][-1]
+    assert np.hypot(last[0], last[1]) < 0.2 and est[-1].ok
+
+
+def test_a_rival_that_matches_better_takes_over(rng):
+    """The filter tracks 3 m ahead of the truth on a stretch of solid lines, with the true pose
+    as its rival; when an arrow comes into view the rival matches better and the filter
+    switches to it (the tracking ICP's 0.5 m gate alone would never reach 3 m)."""
+    cache = fill_cache(TileCache(capacity=30), straight_road(dashed=False))
+    streams = synthetic_drive(rng, duration_s=4.0, start=(100.0, 28.25, 0.0),
+                              gnss_bias_m=(1.0, -1.0), weave_m=0.0)
+    loc = get_localizer(LocalizerConfig(), cache)
+    frames = [frame_points(cache, p, rng) for p in streams["frame_pose_true"]]
+    seen = {"moved": False, "switched_at": None}
+
+    def on_estimate(i, est):
+        true = streams["frame_pose_true"][i]
+        if (est.diag.get("rivals") or {}).get("switched") and seen["switched_at"] is None:
+            seen["switched_at"] = float(true[0])
+        if est.ok and not seen["moved"] and true[0] > 116.0:  # arrow at 136 m, view 3-15 m
+            loc.ekf.reset(true + [3.0, 0.0, 0.0], loc.ekf.cov)
+            loc.rivals = [(true.copy(), loc.odom.copy())]
+            seen["moved"] = True
+
+    est = replay(loc, streams, lambda i: frames[i], on_estimate)
+    assert seen["moved"] and seen["switched_at"] is not None and seen["switched_at"] < 136.0
+    last = est[-1].pose - streams["frame_pose_true"][-1]
+    assert np.hypot(last[0], last[1]) < 0.2 and est[-1].ok and not loc.rivals
