@@ -109,6 +109,11 @@ class LocalizerConfig:
     # blur, a plateau instead of a sharp ridge (services/localizer/map_cache.py; Karlsruhe demo
     # drive, fleet map: 1 -> 5, x 0.075 -> 0.046 m, y 0.064 -> 0.027 m, yaw 0.152 -> 0.083 deg)
     field_line_grow_cells: int = 5
+    # on a lane-lines-only match, hold the along-road position at the prediction with this
+    # sigma (0: off) once the filter knows it to within hold_below_m (services/localizer/
+    # localizer.py Localizer._held; Karlsruhe demo drive: x 0.046 -> 0.039 m, p90 0.093 -> 0.073)
+    hold_along_road_m: float = 0.02
+    hold_below_m: float = 0.1
     icp_cov_scale: float = 60.0  # single-frame ICP is over-confident (correlated points, vibration)
     # (Karlsruhe drive, truth map: 30 -> x 0.078, y 0.114 m; 60 -> 0.070, 0.087; 120 -> 0.066, 0.093)
     gnss_inflate: float = 1.5  # consumer GNSS has a slowly varying bias: trust it less

@@ -211,3 +211,20 @@ def test_a_rival_that_matches_better_takes_over(rng):
     assert seen["moved"] and seen["switched_at"] is not None and seen["switched_at"] < 136.0
     last = est[-1].pose - streams["frame_pose_true"][-1]
     assert np.hypot(last[0], last[1]) < 0.2 and est[-1].ok and not loc.rivals
+
+
+def test_a_lane_lines_only_match_holds_the_along_road_position_only_once_it_is_known(road_cache):
+    from services.localizer.icp import IcpResult
+
+    loc = get_localizer(LocalizerConfig(hold_along_road_m=0.02, hold_below_m=0.1), road_cache)
+    along = np.array([1.0, 0.0, 0.0])
+    info = np.diag([0.0, 400.0, 1e4])  # nothing along the road (+x)
+    res = IcpResult(np.zeros(3), np.eye(3), 500, 500, 0.02, True, along, np.zeros(3), 5,
+                    information=info)
+    loc.ekf.reset(np.zeros(3), np.diag([0.4**2, 0.05**2, 1e-4]))  # just initialized
+    assert np.array_equal(loc._held(res), info)
+    loc.ekf.reset(np.zeros(3), np.diag([0.05**2, 0.05**2, 1e-4]))  # along-road known
+    assert loc._held(res)[0, 0] == pytest.approx(1 / 0.02**2)
+    sure = IcpResult(np.zeros(3), np.eye(3), 500, 500, 0.02, False, along, np.zeros(3), 5,
+                     information=info)
+    assert np.array_equal(loc._held(sure), info)  # a match that sees along the road: as is
