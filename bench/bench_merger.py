@@ -51,7 +51,7 @@ def world_label_tiles(quick: bool) -> dict:
 
 
 def traversal_patches(tiles: dict, traversals: int, pieces: int, seed: int = 0,
-                      overlap: float = 0.0) -> list[GridPatch]:
+                      overlap: float = 0.0, spacing_ns: int = 10**12) -> list[GridPatch]:
     """Every tile seen by every traversal, votes 1..12 for the true class plus noise votes.
     `overlap`: each piece also takes that fraction of the next piece's cells (with votes of its
     own), as a vehicle's successive patches share the cells its ROI swept in both."""
@@ -73,7 +73,7 @@ def traversal_patches(tiles: dict, traversals: int, pieces: int, seed: int = 0,
                 if overlap:
                     v = np.maximum(1, v // 2) * (v > 0)
                 out.append(GridPatch(f"{tile}/{k}/{j}", "bench", tile, cells[part], v,
-                                     k * 10**12 + j, k * 10**12 + j + 1, f"d{k}"))
+                                     k * spacing_ns + j, k * spacing_ns + j + 1, f"d{k}"))
     return out
 
 
@@ -138,6 +138,34 @@ def merge_throughput(quick: bool) -> dict:
         "tiles": len(tiles), "traversals": 6,
         "goal": {"cell_votes_per_s_min": 5_000_000, "ratio_to_bincount_min": 0.333},
     }
+
+
+def retirement(quick: bool) -> dict:
+    """Memory of a shard as traversals keep coming (an hour apart, every tile seen each time,
+    flushed after each): traversal records and vote bytes held, keeping all against retiring
+    those out of every cell's window (services/merger/shard.py), and the maps' digests."""
+    tiles = world_label_tiles(True)
+    n = 12 if quick else 40
+    patches = traversal_patches(tiles, traversals=n, pieces=2, spacing_ns=3600 * 10**9)
+    by_trav: dict = {}
+    for p in patches:
+        by_trav.setdefault(p.traversal, []).append(p)
+    out = {}
+    for name, after in (("keep_all", -1.0), ("retire", 3600.0)):
+        shard = MergerShard(retire_after_s=after, max_batch_patches=1 << 20,
+                            max_batch_cells=1 << 40)
+        c0 = time.process_time()
+        for group in by_trav.values():
+            shard.apply_batch(group)
+            shard.flush()
+        held = sum(sum(c.nbytes + v.nbytes for c, v in t.pieces)
+                   for s in shard.tiles_state.values() for t in s.traversals.values())
+        out[name] = {"traversals_held": shard.traversals_held(),
+                     "vote_mb_held": round(held / 2**20, 2),
+                     "cpu_s": round(time.process_time() - c0, 2), "digest": shard.digest()[:16]}
+    out["same_map"] = out["keep_all"]["digest"] == out["retire"]["digest"]
+    out.update(traversals=n, tiles=len(tiles))
+    return out
 
 
 # -- ingest scaling ------------------------------------------------------------------------------
@@ -331,7 +359,8 @@ def _rounded(run: dict) -> dict:
 
 
 def run(quick: bool = False, window: int = 8) -> dict:
-    return {"merge": merge_throughput(quick), "scaling": ingest_scaling(quick, window)}
+    return {"merge": merge_throughput(quick), "retirement": retirement(quick),
+            "scaling": ingest_scaling(quick, window)}
 
 
 def main() -> None:

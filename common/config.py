@@ -173,6 +173,9 @@ class MergerConfig:
     window_traversals: int = 3  # ballots of the newest observing traversals per cell (repaint in 2)
     footprint_cells: int = 9  # a traversal's unvoted cells inside its closed footprint vote none
     min_votes: int = 2  # votes behind a label, else unknown
+    # a traversal out of every cell's window is dropped from memory once it is this much older
+    # than the tile's window-th newest traversal (services/merger/shard.py; < 0: never)
+    retire_after_s: float = 3600.0
     debounce_s: float = 0.5  # recompress / publish changed tiles at most this often
     debounce_max_s: float = 2.0  # ... and, while batches keep coming, at the latest this late
     max_batch_patches: int = 4096

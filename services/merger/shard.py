@@ -36,8 +36,16 @@ ballot against the 2 before it and never flips a cell they agree on (two noisy t
 row can: the price of following in 2). A map of one traversal is the paper's plain vote argmax
 (of two, ties go to the votes behind each ballot). Everything is integer arithmetic and a
 deterministic morphology over the set of applied patches, so the map (and its digest) is
-independent of arrival order, crashes and replays. Memory grows with the stored traversals of a
-tile (compaction of traversals outside every cell's window is future work).
+independent of arrival order, crashes and replays.
+
+Retirement (bounded memory): a traversal none of whose observed cells is in its window any more
+(every one has `window` newer observations) can never count again, since later traversals only
+add observations. At a flush such a traversal is dropped from memory (its patches stay in the
+store, its patch ids in the dedupe set) once it is also RETIRE_AFTER_S older than the tile's
+window-th newest traversal: that margin keeps the rule exact in practice, as a late patch could
+still make a traversal newer (lower its t_first_ns) or add to a retired one. Such a late patch
+of a retired traversal starts it afresh from its new pieces (counted as "revived"). So a tile's
+memory is that of the traversals still in some cell's window, not of every traversal ever.
 """
 
 import hashlib
@@ -54,6 +62,7 @@ from common.grid import CELLS_PER_TILE, TILE_CELLS
 from common.messages import ACCEPTED, DUPLICATE, GridPatch
 
 WINDOW_TRAVERSALS = 3
+RETIRE_AFTER_S = 3600.0  # retirement margin (module docstring); < 0: never retire
 MIN_VOTES = 2
 FOOTPRINT_CELLS = 9  # closing square of a traversal's voted cells (module docstring, 1.)
 VOTE_CAP = 1 << 24  # per traversal and cell: window sums (window < 256) stay below 2^32
@@ -153,6 +162,7 @@ def _ballot(columns) -> tuple[np.ndarray, np.ndarray]:
 @dataclass
 class _TileState:
     traversals: dict[str, _Traversal] = field(default_factory=dict)
+    retired: dict[str, int] = field(default_factory=dict)  # traversal id -> its t_first_ns
     labels: np.ndarray = field(default_factory=lambda: np.zeros((TILE_CELLS, TILE_CELLS), np.uint8))
     dirty: bool = False
 
@@ -167,6 +177,7 @@ class MergerShard:
             window_traversals=merger_cfg.window_traversals,
             min_votes=merger_cfg.min_votes,
             footprint_cells=merger_cfg.footprint_cells,
+            retire_after_s=merger_cfg.retire_after_s,
             max_batch_patches=merger_cfg.max_batch_patches,
             max_batch_cells=merger_cfg.max_batch_cells,
         )
@@ -178,6 +189,7 @@ class MergerShard:
         window_traversals: int = WINDOW_TRAVERSALS,
         min_votes: int = MIN_VOTES,
         footprint_cells: int = FOOTPRINT_CELLS,
+        retire_after_s: float = RETIRE_AFTER_S,
         max_batch_patches: int = 4096,
         max_batch_cells: int = 4_000_000,
     ):
@@ -188,11 +200,13 @@ class MergerShard:
         self.window = int(window_traversals)
         self.min_votes = int(min_votes)
         self.footprint_cells = int(footprint_cells)
+        self.retire_after_ns = None if retire_after_s < 0 else int(retire_after_s * 1e9)
         self.max_batch_patches = int(max_batch_patches)
         self.max_batch_cells = int(max_batch_cells)
         self.seen: set[str] = set()
         self.tiles_state: dict[TileId, _TileState] = {}
-        self.counters = {"patches_applied": 0, "duplicates": 0, "cell_votes": 0}
+        self.counters = {"patches_applied": 0, "duplicates": 0, "cell_votes": 0,
+                         "traversals_retired": 0, "traversals_revived": 0}
 
     # -- ingest ----------------------------------------------------------------------------------
 
@@ -238,6 +252,8 @@ class MergerShard:
     def _add(self, p: GridPatch) -> None:
         state = self.tiles_state.setdefault(tuple(p.tile), _TileState())
         trav = state.traversals.get(p.traversal)
+        if trav is None and state.retired.pop(p.traversal, None) is not None:
+            self.counters["traversals_revived"] += 1  # a late patch (module docstring)
         if trav is None:
             trav = state.traversals[p.traversal] = _Traversal(t_first_ns=p.t_first_ns)
         trav.add(np.asarray(p.cells, dtype=np.uint32), np.asarray(p.votes), p.t_first_ns)
@@ -258,13 +274,33 @@ class MergerShard:
             state = self.tiles_state.get(t)
             if state is None or not state.dirty:
                 continue
+            idle: list[str] = []
             state.labels = tile_labels(
                 list(state.traversals.items()), window=self.window, min_votes=self.min_votes,
-                footprint_cells=self.footprint_cells,
+                footprint_cells=self.footprint_cells, idle=idle,
             )
+            self._retire(state, idle)
             state.dirty = False
             done.append(t)
         return done
+
+    def _retire(self, state: _TileState, idle: list[str]) -> None:
+        """Drop the idle traversals (no cell took an observation from them) that are also the
+        retirement margin older than the tile's window-th newest traversal."""
+        if self.retire_after_ns is None or not idle:
+            return
+        firsts = sorted((t.t_first_ns for t in state.traversals.values()), reverse=True)
+        horizon = firsts[self.window - 1] - self.retire_after_ns
+        for tid in idle:
+            t_first = state.traversals[tid].t_first_ns
+            if t_first < horizon:
+                del state.traversals[tid]
+                state.retired[tid] = t_first
+                self.counters["traversals_retired"] += 1
+
+    def traversals_held(self) -> int:
+        """Traversal-in-tile records held in memory (what retirement bounds)."""
+        return sum(len(s.traversals) for s in self.tiles_state.values())
 
     def labels(self, tile: TileId) -> np.ndarray:
         """The merged (512, 512) label raster of a tile as of the last flush."""
@@ -289,6 +325,7 @@ class MergerShard:
         return {
             **self.counters,
             "tiles": len(tiles),
+            "traversals_held": self.traversals_held(),
             "cells": int(sum(int(np.count_nonzero(self.tiles_state[t].labels)) for t in tiles)),
             "tile_list": ";".join(f"{tx},{ty}" for tx, ty in tiles),
             "digest": self.digest(),
@@ -309,23 +346,26 @@ def _check_patch(p: GridPatch) -> None:
 
 def tile_labels(
     traversals: list[tuple[str, _Traversal]], *, window: int, min_votes: int,
-    footprint_cells: int = FOOTPRINT_CELLS,
+    footprint_cells: int = FOOTPRINT_CELLS, idle: list[str] | None = None,
 ) -> np.ndarray:
     """The evidence rule (module docstring) for one tile -> (512, 512) uint8 labels.
 
     Dense per-tile accumulators; traversals are visited newest first and each cell stops taking
-    observations once it has `window` of them, so no per-cell sort is needed."""
+    observations once it has `window` of them, so no per-cell sort is needed. `idle`, if given,
+    receives the ids of the traversals no cell took an observation from."""
     # per (cell, class): ballots in the high 32 bits, the votes behind them in the low 32 bits,
     # so one integer add counts both and an argmax ranks by ballots, then votes
     packed = np.zeros(CELLS_PER_TILE * SLOTS, dtype=np.uint64)
     seen = np.zeros(CELLS_PER_TILE, dtype=np.uint16)  # observations taken per cell
     # 2. most recent first, by the traversals' own time then id (arrival order never matters)
     order = sorted(traversals, key=lambda kv: (kv[1].t_first_ns, kv[0]), reverse=True)
-    for _, trav in order:
+    for tid, trav in order:
         cells, ballot, weight = trav.ballots(footprint_cells)  # 1. one per traversal and cell
         if len(order) > window:  # 2. only each cell's `window` newest observations count
             fresh = seen[cells] < window
             cells, ballot, weight = cells[fresh], ballot[fresh], weight[fresh]
+            if idle is not None and not len(cells):
+                idle.append(tid)
         seen[cells] += 1
         packed[cells.astype(np.intp) * SLOTS + ballot] += weight.astype(np.uint64) + BALLOT
     observed = np.flatnonzero(seen)

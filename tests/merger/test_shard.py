@@ -273,3 +273,37 @@ def test_codec_cache_versions_grow_only_on_change():
     assert cache.update((0, 0), labels) and cache.get((0, 0))[0] == 1
     assert not cache.update((0, 0), labels.copy())
     assert cache.update((0, 0), lane_tile(offset_cells=5)) and cache.get((0, 0))[0] == 2
+
+
+def test_retiring_traversals_out_of_every_window_keeps_the_map_and_bounds_memory(rng):
+    """40 traversals an hour apart (the paint moves after 30), flushed after each: a shard that
+    retires traversals holds a handful and has, after every flush, the same map as one that
+    keeps all 40."""
+    old, new = lane_tile(), lane_tile(offset_cells=20)
+    keep, retire = MergerShard(retire_after_s=-1), MergerShard(retire_after_s=3600)
+    for k in range(40):
+        patches = patches_from_labels(old if k < 30 else new, traversal=f"d{k:03d}",
+                                      t_ns=k * 3600 * S, rng=rng, flip_rate=0.05)
+        for shard in (keep, retire):
+            shard.apply_batch(patches)
+            shard.flush()
+        assert np.array_equal(keep.labels((0, 0)), retire.labels((0, 0))), k
+    assert keep.traversals_held() == 40 and keep.counters["traversals_retired"] == 0
+    assert retire.traversals_held() <= 8
+    assert retire.counters["traversals_retired"] == 40 - retire.traversals_held()
+    assert keep.digest() == retire.digest()
+    assert (retire.labels((0, 0))[new > 0] == new[new > 0]).mean() > 0.99  # follows the new paint
+
+
+def test_a_late_patch_of_a_retired_traversal_revives_it():
+    shard = MergerShard(retire_after_s=0)
+    shard.apply_batch(_traversals(lane_tile(), 8))
+    shard.flush()
+    held = shard.traversals_held()
+    assert held < 8
+    late = patches_from_labels(lane_tile(), traversal="d000", t_ns=0)[0]
+    late = GridPatch("late-0", late.vehicle, late.tile, late.cells, late.votes, 0, 0, "d000")
+    assert shard.apply_patch(late) == "accepted"
+    assert shard.counters["traversals_revived"] == 1 and shard.traversals_held() == held + 1
+    shard.flush()
+    assert np.array_equal(shard.labels((0, 0)), lane_tile())
