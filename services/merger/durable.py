@@ -15,6 +15,8 @@ from services.merger.store import ShardStore
 logger = logging.getLogger(__name__)
 
 RECOVERY_CHUNK = 512
+RECOVERY_FLUSH_EVERY = 16  # chunks: labels are recomputed (and old traversals retired) as the
+# replay goes, so a restart after months of traversals never holds them all at once
 
 
 class DurableShard:
@@ -43,6 +45,8 @@ class DurableShard:
                 if len(chunk) >= RECOVERY_CHUNK:
                     n += self._replay(chunk)
                     chunk = []
+                    if n % (RECOVERY_CHUNK * RECOVERY_FLUSH_EVERY) == 0:
+                        self.shard.flush(keep_dirty=True)
             n += self._replay(chunk)
         self.flush()  # lock order: flush_lock before the state lock
         return n

@@ -267,8 +267,11 @@ class MergerShard:
     def dirty_tiles(self) -> list[TileId]:
         return sorted(t for t, s in self.tiles_state.items() if s.dirty)
 
-    def flush(self, tiles: Iterable[TileId] | None = None) -> list[TileId]:
-        """Recompute the labels of dirty tiles (all, or those given); returns those recomputed."""
+    def flush(self, tiles: Iterable[TileId] | None = None, *, keep_dirty: bool = False
+              ) -> list[TileId]:
+        """Recompute the labels of dirty tiles (all, or those given); returns those recomputed.
+        keep_dirty: leave them dirty (a recovery retiring old traversals as it replays, whose
+        caller still has to encode every replayed tile)."""
         done = []
         for t in self.dirty_tiles() if tiles is None else tiles:
             state = self.tiles_state.get(t)
@@ -280,7 +283,7 @@ class MergerShard:
                 footprint_cells=self.footprint_cells, idle=idle,
             )
             self._retire(state, idle)
-            state.dirty = False
+            state.dirty = keep_dirty
             done.append(t)
         return done
 

@@ -148,3 +148,25 @@ def test_a_store_written_by_the_older_codec_keeps_its_tile_versions_growing(tmp_
     assert tile.codec == "contour/2" and tile.version == 8
     assert (decode_tile(tile.data) == lane_tile()).mean() > 0.99
     second.store.close()
+
+
+def test_a_recovery_that_retires_as_it_replays_rebuilds_the_same_map(tmp_path, monkeypatch):
+    from services.merger import durable as durable_mod
+
+    path = tmp_path / "s0.sqlite"
+    first = DurableShard(MergerShard(retire_after_s=0), ShardStore(path), ident="s0")
+    for k in range(12):
+        first.ingest(codec.encode(IngestBatch(patches_from_labels(
+            lane_tile(), traversal=f"d{k:02d}", t_ns=k * 3600 * 10**9))))
+    first.flush()
+    digest, versions = first.stats().counters["digest"], {t: first.tile(t).version
+                                                           for t in first.tiles()}
+    first.store.close()
+    monkeypatch.setattr(durable_mod, "RECOVERY_CHUNK", 2)  # flush every 2 x 1 patches
+    monkeypatch.setattr(durable_mod, "RECOVERY_FLUSH_EVERY", 1)
+    second = DurableShard(MergerShard(retire_after_s=0), ShardStore(path), ident="s0")
+    assert second.recover() == 24
+    assert second.shard.counters["traversals_retired"] > 0
+    assert second.stats().counters["digest"] == digest
+    assert {t: second.tile(t).version for t in second.tiles()} == versions
+    second.store.close()
