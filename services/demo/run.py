@@ -104,7 +104,7 @@ class DemoRun:
     def _prepare_out(self) -> None:
         """Fresh run directories (old stores would change the map); keep anything else in OUT."""
         self.out.mkdir(parents=True, exist_ok=True)
-        for sub in ("run", "drives", "logs", "localizer"):
+        for sub in ("run", "drives", "logs", "localizer", "localizer-raw"):
             shutil.rmtree(self.out / sub, ignore_errors=True)
         (self.out / "run").mkdir()
         (self.out / "config.toml").write_text(to_toml(self.cfg))
@@ -251,14 +251,26 @@ class DemoRun:
         return run_fetch(sup.router_endpoint, "tiles", self.args.shards, out=path)
 
     def _localize(self, sup: Supervisor, log: Path) -> dict:
+        """The production drive on the compressed map; then, one after the other (the first
+        run's per-frame timings stay its own), on the uncompressed one."""
         _require("services.localizer.node", "the localizer service (services.localizer.node)")
-        out = self.out / "localizer"
-        sup.start_localizer("localizer", log, out)
-        sup.wait("localizer", self.d.localizer_timeout_s)
+        loc = self._localizer_run(sup, log, "localizer", [])
+        if self.d.compare_raw_map:
+            raw = self._localizer_run(sup, log, "localizer-raw", [
+                "--set", 'localizer.map_codec="raw"', "--set", "localizer.publish=false"])
+            loc["uncompressed_map"] = {k: raw.get(k) for k in (
+                "x_m", "y_m", "yaw_deg", "lateral_m", "longitudinal_m", "availability_0_5m",
+                "convergence_s", "tile_bytes")}
+        return loc
+
+    def _localizer_run(self, sup: Supervisor, log: Path, name: str, extra: list[str]) -> dict:
+        out = self.out / name
+        sup.start_localizer(name, log, out, extra)
+        sup.wait(name, self.d.localizer_timeout_s)
         try:
             return json.loads((out / "localization.json").read_text())
         except (OSError, ValueError) as exc:
-            raise DemoError(f"localizer wrote no localization.json in {out} ({exc})") from exc
+            raise DemoError(f"{name} wrote no localization.json in {out} ({exc})") from exc
 
     # -- repaint -----------------------------------------------------------------------------
 
@@ -559,6 +571,10 @@ def format_table(report: dict) -> str:
             f"{_f(x_all)}, y {_f(y_all)} m, availability "
             f"{_f(every.get('availability_0_5m'), '{:.2f}')})"
         )
+    raw = loc.get("uncompressed_map")
+    if raw:
+        x, y, yaw = ((raw.get(k) or {}).get("mean") for k in ("x_m", "y_m", "yaw_deg"))
+        lines.append(f"  (uncompressed map: x {_f(x)}, y {_f(y)} m, yaw {_f(yaw)} deg mean)")
     lines.append(f"{'map size [KB/km]':22s}{m['kb_per_km']:>10.1f}{'':10s}"
                  f"{ev.PAPER['kb_per_km']:>12.1f}"
                  f"   (raw grid {m['raw_kb_per_km']:.0f}, PNG {m['png_kb_per_km']:.0f})")

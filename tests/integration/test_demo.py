@@ -55,6 +55,8 @@ def test_report_follows_the_contract(runs):
     for key in ("x_m", "y_m", "yaw_deg", "lateral_m", "longitudinal_m"):
         assert {"mean", "p90", "max"} <= set(r["localization"][key])
     assert r["world"]["km_mapped"] > 0.1  # a --small drive is ~0.2 km
+    raw = r["localization"]["uncompressed_map"]  # the same drive on the uncompressed map
+    assert raw["x_m"]["mean"] is not None and raw["availability_0_5m"] > 0.9
 
 
 def test_pipeline_counts_are_consistent(runs):
