@@ -117,6 +117,10 @@ class LocalizerConfig:
     # localizer.py Localizer._held; Karlsruhe demo drive: x 0.046 -> 0.039 m, p90 0.093 -> 0.073)
     hold_along_road_m: float = 0.02
     hold_below_m: float = 0.1
+    # one pixel of label noise at range r is r^2 / (f h) along the viewing ray: far points'
+    # residuals along the ray weigh less (services/localizer/icp.py IpmNoise; 0: off; Karlsruhe
+    # demo drive: x 0.039 -> 0.029, y 0.033 -> 0.027 m, yaw 0.087 -> 0.076 deg)
+    ipm_sigma_px: float = 1.0
     icp_cov_scale: float = 60.0  # single-frame ICP is over-confident (correlated points, vibration)
     # (Karlsruhe drive, truth map: 30 -> x 0.078, y 0.114 m; 60 -> 0.070, 0.087; 120 -> 0.066, 0.093)
     gnss_inflate: float = 1.5  # consumer GNSS has a slowly varying bias: trust it less

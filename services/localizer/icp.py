@@ -62,7 +62,36 @@ def _robust_weights(err_m: np.ndarray, huber_m: float) -> np.ndarray:
     return w
 
 
-def _normal_equations(pts_v, jac_v, nearest, pose, gate_m, huber_m):
+@dataclass(frozen=True)
+class IpmNoise:
+    """How far a ground point from inverse perspective mapping may be off: one pixel of label
+    noise moves a point at range r (from the camera) by r^2 / (f h) along the viewing ray and
+    by r / f across it (f focal length in pixels, h camera height). Residuals along the ray of
+    far points weigh less: sigma0^2 / (sigma0^2 + that error along the residual's direction)."""
+
+    along_per_m2: float  # sigma_px / (f h)
+    across_per_m: float  # sigma_px / f
+    camera_xy: tuple[float, float]  # camera position in the vehicle frame
+    sigma0_m: float
+
+    @classmethod
+    def from_camera(cls, camera, sigma_px: float, sigma0_m: float) -> "IpmNoise":
+        f, h = float(camera.K[0, 0]), float(camera.T_vehicle_camera[2, 3])
+        xy = camera.T_vehicle_camera[:2, 3]
+        return cls(sigma_px / (f * h), sigma_px / f, (float(xy[0]), float(xy[1])), sigma0_m)
+
+    def weights(self, pts_v: np.ndarray, nx: np.ndarray, ny: np.ndarray, c: float, s: float):
+        """Per-point weights for residual directions (nx, ny) in the world (pose yaw c, s)."""
+        dx, dy = pts_v[:, 0] - self.camera_xy[0], pts_v[:, 1] - self.camera_xy[1]
+        r = np.maximum(np.hypot(dx, dy), 1e-6)
+        nvx, nvy = c * nx + s * ny, -s * nx + c * ny  # direction in the vehicle frame
+        along = (nvx * dx + nvy * dy) / r  # its components along and across the ray
+        across = (-nvx * dy + nvy * dx) / r
+        var = (along * self.along_per_m2 * r * r) ** 2 + (across * self.across_per_m * r) ** 2
+        return self.sigma0_m**2 / (self.sigma0_m**2 + var)
+
+
+def _normal_equations(pts_v, jac_v, nearest, pose, gate_m, huber_m, ipm=None):
     """Distance of points (vehicle frame) placed at pose to their nearest map cells (0.1 m squares).
 
     The residual is the scalar distance to the cell's square, so points already on a map cell of
@@ -83,6 +112,8 @@ def _normal_equations(pts_v, jac_v, nearest, pose, gate_m, huber_m):
     nx = np.where(on, ex / np.where(on, err, 1.0), 0.0)
     ny = np.where(on, ey / np.where(on, err, 1.0), 0.0)
     w = _robust_weights(err, huber_m) * inl
+    if ipm is not None:
+        w = w * ipm.weights(pts_v, nx, ny, c, s)
     J = _jacobian(nx, ny, rx, ry, c, s, jac_v)
     H = (J * w[:, None]).T @ J
     g = J.T @ (w * err)
@@ -116,6 +147,7 @@ class Icp:
         field_sigma: float = 0.1,
         field_min: float = 0.02,
         field_slots: tuple = (1, 2),  # lane line, stop line
+        ipm: IpmNoise | None = None,
     ):
         self.iterations = iterations
         self.gate_start_m, self.gate_end_m = gate_start_m, gate_end_m
@@ -134,6 +166,7 @@ class Icp:
         self.field_sigma = field_sigma  # noise of one point's field residual (1 - field)
         self.field_min = field_min  # points where the field is below this have no match
         self.field_slots = np.asarray(field_slots)  # class slots refined on the field
+        self.ipm = ipm  # range-dependent weights of the frame's points (None: all alike)
 
     def register(
         self,
@@ -178,6 +211,7 @@ class Icp:
                 pose,
                 gate,
                 self.huber_m,
+                self.ipm,
             )
             if inl.sum() < self.min_points:
                 return None
@@ -230,7 +264,7 @@ class Icp:
         current = cost(pose, att)
         for _ in range(self.refine_iterations):
             H, g, n = _field_equations(
-                _moved(pts0, jac, att), jac, slots, pose, local_map, self.field_min
+                _moved(pts0, jac, att), jac, slots, pose, local_map, self.field_min, self.ipm
             )
             if n < self.min_points:
                 return None
@@ -250,7 +284,7 @@ class Icp:
             if np.abs(step[:2]).max() < 1e-4 and abs(step[2]) < 1e-5:
                 break
         H, _, n = _field_equations(
-            _moved(pts0, jac, att), jac, slots, pose, local_map, self.field_min
+            _moved(pts0, jac, att), jac, slots, pose, local_map, self.field_min, self.ipm
         )
         if n < self.min_points:
             return None
@@ -279,7 +313,7 @@ class Icp:
     ) -> IcpResult:
         nearest, valid = local_map.nearest(_to_world(pts, pose), slots)
         _, _, err, inl, w = _normal_equations(
-            pts[valid], None, nearest[valid], pose, self.gate_end_m, self.huber_m
+            pts[valid], None, nearest[valid], pose, self.gate_end_m, self.huber_m, self.ipm
         )
         if H_field is None:
             H_field = self._smoothed_information(pts, jac, slots, pose, local_map, scale)
@@ -316,12 +350,13 @@ class Icp:
                     probe,
                     self.gate_end_m,
                     self.huber_m,
+                    self.ipm,
                 )
                 H = H + Hk / 6.0
         return H
 
 
-def _field_equations(pts_v, jac_v, slots, pose, local_map, field_min):
+def _field_equations(pts_v, jac_v, slots, pose, local_map, field_min, ipm=None):
     """Normal equations of the residuals 1 - field(point) over (pose, attitude); (H, g, points
     that reach the field)."""
     c, s = math.cos(pose[2]), math.sin(pose[2])
@@ -332,7 +367,11 @@ def _field_equations(pts_v, jac_v, slots, pose, local_map, field_min):
     r = np.where(use, 1.0 - value, 0.0)
     gx, gy = np.where(use, -grad[:, 0], 0.0), np.where(use, -grad[:, 1], 0.0)
     J = _jacobian(gx, gy, rx, ry, c, s, jac_v)
-    return J.T @ J, J.T @ r, int(use.sum())
+    if ipm is None:
+        return J.T @ J, J.T @ r, int(use.sum())
+    norm = np.maximum(np.hypot(gx, gy), 1e-12)
+    w = ipm.weights(pts_v, gx / norm, gy / norm, c, s)
+    return (J * w[:, None]).T @ J, J.T @ (w * r), int(use.sum())
 
 
 def _pose_delta(pose, pose_prior) -> np.ndarray:

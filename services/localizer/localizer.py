@@ -14,7 +14,7 @@ import numpy as np
 from common.classes import Cls
 from common.geometry import se2_between, se2_compose, transform_points_2d
 from services.localizer.ekf import PoseFilter
-from services.localizer.icp import Icp, IcpResult
+from services.localizer.icp import Icp, IcpResult, IpmNoise
 from services.localizer.init import CoarseSearch, fine_overlap
 from services.localizer.map_cache import TileCache, class_slots
 
@@ -437,9 +437,14 @@ def _align_2d(src: np.ndarray, dst: np.ndarray):
     return theta, md - np.array([[c, -s], [s, c]]) @ ms
 
 
-def get_localizer(lc, cache: TileCache, seed: int = 0) -> Localizer:
-    """LocalizerConfig -> Localizer with its ICP, EKF and coarse search."""
+def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer:
+    """LocalizerConfig -> Localizer with its ICP, EKF and coarse search; with the camera
+    (common.camera.CameraModel) the ICP weighs the frame's points by their IPM noise."""
+    ipm = None
+    if camera is not None and lc.ipm_sigma_px > 0:
+        ipm = IpmNoise.from_camera(camera, lc.ipm_sigma_px, sigma0_m=0.05)
     icp = Icp(
+        ipm=ipm,
         iterations=lc.icp_iterations,
         gate_start_m=lc.icp_gate_start_m,
         gate_end_m=lc.icp_gate_end_m,

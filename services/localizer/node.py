@@ -47,7 +47,7 @@ def localize_log(log: DriveLog, cfg, session, vehicle: str, out: Path) -> dict:
     cache = TileCache(capacity=lc.cache_tiles, line_grow_cells=lc.field_line_grow_cells)
     client = TileClient(session, cache, codec_name=lc.map_codec, timeout_s=cfg.bus.query_timeout_s)
     publisher = session.declare_publisher(keys.pose(vehicle)) if lc.publish else None
-    loc = get_localizer(lc, cache)
+    loc = get_localizer(lc, cache, camera=log.meta.camera)
     frames = _FrameSource(log, cfg)
     streams = log.streams
     timings = {"segment_ms": [], "frame_ms": [], "fetch_ms": []}

@@ -228,3 +228,22 @@ def test_a_lane_lines_only_match_holds_the_along_road_position_only_once_it_is_k
     sure = IcpResult(np.zeros(3), np.eye(3), 500, 500, 0.02, False, along, np.zeros(3), 5,
                      information=info)
     assert np.array_equal(loc._held(sure), info)  # a match that sees along the road: as is
+
+
+def test_ipm_noise_weighs_far_residuals_along_the_ray_less():
+    from common.camera import camera_from_config
+    from common.config import CameraConfig
+    from services.localizer.icp import IpmNoise
+
+    cam = camera_from_config(CameraConfig())
+    ipm = IpmNoise.from_camera(cam, sigma_px=1.0, sigma0_m=0.05)
+    pts = np.array([[14.0, 0.0], [14.0, 0.0], [4.0, 0.0]])  # vehicle frame, ahead
+    yaw = 0.7  # the pose's heading: directions are world-frame, weights must not care
+    c, s = math.cos(yaw), math.sin(yaw)
+    along, across = np.array([c, s]), np.array([-s, c])  # vehicle x / y axes in the world
+    nx = np.array([along[0], across[0], along[0]])
+    ny = np.array([along[1], across[1], along[1]])
+    w = ipm.weights(pts, nx, ny, c, s)
+    assert w[0] < 0.1  # 12 m from the camera, along the ray: 0.2 m per pixel
+    assert w[1] > 0.7  # the same point across the ray: 3 cm per pixel
+    assert w[2] > 0.8  # 4 m ahead along the ray
