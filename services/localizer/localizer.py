@@ -230,14 +230,15 @@ class Localizer:
         ranked.sort(key=lambda r: -r[0])
         if not ranked or ranked[0][0] < self.init_min_overlap:
             return {"state": "init_failed", "overlap": ranked[0][0] if ranked else None}
-        best, runner = ranked[0], _runner_up(ranked)
+        distinct = _distinct(ranked)  # the best, then each pose 1 m / 3 deg from the earlier
+        best, runner = distinct[0], distinct[1] if len(distinct) > 1 else None
         final = n >= self.submap.maxlen or self.travel_m >= self.init_travel_m
         if runner is not None and runner[0] > best[0] - self.init_margin and not final:
             return {"state": "init_ambiguous", "overlap": best[0], "runner_up": runner[0]}
         self._start_filter(best[1])
         self.rivals = [
             (res.pose, self.odom.copy())
-            for overlap, res in _distinct(ranked)[1:]
+            for overlap, res in distinct[1:]
             if overlap > best[0] - self.init_margin
         ]
         self.rivals_since_m = self.travel_m
@@ -415,11 +416,6 @@ def _distinct(ranked):
 def _far(a: np.ndarray, b: np.ndarray) -> bool:
     d = a - b
     return np.hypot(d[0], d[1]) > 1.0 or abs(math.remainder(d[2], 2 * math.pi)) > math.radians(3)
-
-
-def _runner_up(ranked):
-    """Best candidate more than 1 m or 3 deg away from the winner (None if there is none)."""
-    return next(((o, r) for o, r in ranked[1:] if _far(r.pose, ranked[0][1].pose)), None)
 
 
 def _motion(v: float, w: float, dt: float) -> np.ndarray:

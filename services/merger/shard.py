@@ -162,7 +162,7 @@ def _ballot(columns) -> tuple[np.ndarray, np.ndarray]:
 @dataclass
 class _TileState:
     traversals: dict[str, _Traversal] = field(default_factory=dict)
-    retired: dict[str, int] = field(default_factory=dict)  # traversal id -> its t_first_ns
+    retired: set[str] = field(default_factory=set)  # ids of traversals dropped from memory
     labels: np.ndarray = field(default_factory=lambda: np.zeros((TILE_CELLS, TILE_CELLS), np.uint8))
     dirty: bool = False
 
@@ -252,7 +252,8 @@ class MergerShard:
     def _add(self, p: GridPatch) -> None:
         state = self.tiles_state.setdefault(tuple(p.tile), _TileState())
         trav = state.traversals.get(p.traversal)
-        if trav is None and state.retired.pop(p.traversal, None) is not None:
+        if trav is None and p.traversal in state.retired:
+            state.retired.discard(p.traversal)
             self.counters["traversals_revived"] += 1  # a late patch (module docstring)
         if trav is None:
             trav = state.traversals[p.traversal] = _Traversal(t_first_ns=p.t_first_ns)
@@ -295,10 +296,9 @@ class MergerShard:
         firsts = sorted((t.t_first_ns for t in state.traversals.values()), reverse=True)
         horizon = firsts[self.window - 1] - self.retire_after_ns
         for tid in idle:
-            t_first = state.traversals[tid].t_first_ns
-            if t_first < horizon:
+            if state.traversals[tid].t_first_ns < horizon:
                 del state.traversals[tid]
-                state.retired[tid] = t_first
+                state.retired.add(tid)
                 self.counters["traversals_retired"] += 1
 
     def traversals_held(self) -> int:
