@@ -149,20 +149,18 @@ def sim_accuracy(
     profile: 1.6 m); the result then also says how far off the GNSS was at the first frame."""
     import argparse as _ap
     import subprocess
+    from dataclasses import replace
 
     from common import codec, keys
     from common.bus import free_tcp_port, open_session, wait_for_tcp
     from common.config import BusConfig, load_config
     from common.contours import CODEC, RAW_CODEC, encode_raw
+    from common.drivelog import DriveLog
     from common.messages import Tile
     from services.localizer.node import main as localize
+    from services.sim import sensors
     from services.sim.simulate import simulate_drives
     from services.sim.worlds import load_world
-
-    from dataclasses import replace
-
-    from common.drivelog import DriveLog
-    from services.sim import sensors
 
     w = load_world(world, 0)
     noise = None
@@ -336,7 +334,8 @@ def main() -> int:
             sets=tuple(args.set),
             gnss_bias_m=args.gnss_bias_m,
         )
-        sys.stdout.write(f"{summary_line(acc)}, GNSS {acc['gnss_error_at_start_m']} m off at start\n")
+        off = acc["gnss_error_at_start_m"]
+        sys.stdout.write(f"{summary_line(acc)}, GNSS {off} m off at start\n")
         return 0
     result = {"cores_used": 1, "cpu_count": os.cpu_count(), **run(args.quick)}
     out = Path(args.out)
