@@ -1,9 +1,16 @@
 """Strict msgpack codec for the wire messages: encode(msg) -> bytes, decode(bytes) -> msg.
 
 Envelope {"v": 1, "type": <name>, "body": {...}}; arrays as {"dtype", "shape", "data"} little
-endian. Anything unexpected raises CodecError naming what was expected. No pickle anywhere."""
+endian. Anything unexpected raises CodecError naming what was expected. No pickle anywhere.
+
+Departure from DESIGN.md (Wire format), on purpose: a GridPatch goes out with its cells and
+votes packed (`packed`: {codec, n, data}, see pack_cells_votes) instead of the two raw arrays,
+16 -> about 1.2 bytes per cell: the upload is what a vehicle pays for on a cellular link, and
+the bytes every router forwards and every shard writes and fsyncs before its ack. The decoder
+still takes the DESIGN form (`cells` + `votes` arrays); `encode(..., packed=False)` writes it."""
 
 import math
+import zlib
 from typing import Any
 
 import msgpack
@@ -18,6 +25,9 @@ VERSION = 1
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 MAX_BATCH_PATCHES = 4096
 MAX_ID_CHARS = 256
+PACKED_CODEC = "zlib-dcv/1"
+CELL_BYTES = 4 + 2 * NUM_CLASSES  # a cell unpacked: uint32 index + uint16 votes per class
+MAX_MESSAGE_CELLS = MAX_MESSAGE_BYTES // CELL_BYTES  # what one message of raw arrays can carry
 
 
 # -- arrays ------------------------------------------------------------------------------------
@@ -46,6 +56,46 @@ def unpack_array(obj: Any, what: str, dtype: str, ndim: int, width: int | None =
     if not isinstance(data, bytes) or len(data) != itemsize * math.prod(shape):
         raise CodecError(f"{what}: data length does not match shape {shape} of {dtype}")
     return np.frombuffer(data, dtype=dtype).reshape(shape)
+
+
+# -- packed cells + votes ----------------------------------------------------------------------
+
+
+def pack_cells_votes(cells: np.ndarray, votes: np.ndarray) -> bytes:
+    """PACKED_CODEC: zlib (level 1) of the cell index deltas (<u4, the first against 0) followed
+    by the votes class by class, as uint8 when every count fits (else <u2; the length tells).
+    Sorted cells make the deltas mostly 1 and a class column mostly zeros: ~1 byte per cell
+    instead of 16, ~40 ns per cell to pack, ~15 to unpack."""
+    deltas = np.diff(np.asarray(cells, dtype=np.int64), prepend=0).astype("<u4")
+    votes = np.asarray(votes)
+    narrow = not votes.size or int(votes.max()) <= 255
+    columns = votes.astype(np.uint8 if narrow else "<u2").T
+    return zlib.compress(deltas.tobytes() + columns.tobytes(), 1)
+
+
+def unpack_cells_votes(data: bytes, n: int, what: str = "packed cells") -> tuple[np.ndarray,
+                                                                                 np.ndarray]:
+    """(cells uint32 [n], votes uint8 or uint16 [n, NUM_CLASSES]) from pack_cells_votes' bytes,
+    checked: exactly n cells' worth of data (never inflates past it), cells sorted, unique, in
+    the tile."""
+    inflate = zlib.decompressobj()
+    try:
+        raw = inflate.decompress(data, n * CELL_BYTES)
+    except zlib.error as exc:
+        raise CodecError(f"{what}: not {PACKED_CODEC} data: {exc}") from exc
+    width = (len(raw) - 4 * n) // (n * NUM_CLASSES) if n else 1
+    if (len(raw) != n * (4 + NUM_CLASSES * width) or width not in (1, 2)
+            or inflate.unconsumed_tail or not inflate.eof or inflate.unused_data):
+        raise CodecError(f"{what}: data does not hold exactly {n} cells")
+    deltas = np.frombuffer(raw, dtype="<u4", count=n)
+    if n > 1 and int(deltas[1:].min()) == 0:
+        raise CodecError(f"{what}: cells must be sorted and unique")
+    cells = np.cumsum(deltas, dtype=np.int64)
+    if n and int(cells[-1]) >= CELLS_PER_TILE:
+        raise CodecError(f"{what}: cell index out of range [0, {CELLS_PER_TILE})")
+    dtype = np.uint8 if width == 1 else np.dtype("<u2")
+    votes = np.frombuffer(raw, dtype=dtype, offset=4 * n).reshape(NUM_CLASSES, n).T
+    return cells.astype(np.uint32), votes
 
 
 # -- field checks -------------------------------------------------------------------------------
@@ -82,31 +132,65 @@ def _tile_field(body: dict, what: str) -> tuple[int, int]:
 # -- per-type body encoders/decoders ------------------------------------------------------------
 
 
-def _enc_patch(p: GridPatch) -> dict:
-    return {
+def _enc_patch(p: GridPatch, packed: bool = True) -> dict:
+    body = {
         "patch_id": p.patch_id,
         "vehicle": p.vehicle,
         "tile": [int(p.tile[0]), int(p.tile[1])],
-        "cells": pack_array(np.asarray(p.cells, dtype="<u4")),
-        "votes": pack_array(np.asarray(p.votes, dtype="<u2")),
         "t_first_ns": int(p.t_first_ns),
         "t_last_ns": int(p.t_last_ns),
         "traversal": p.traversal,
     }
+    if packed:
+        body["packed"] = {"codec": PACKED_CODEC, "n": int(len(p.cells)),
+                          "data": pack_cells_votes(p.cells, p.votes)}
+    else:
+        body["cells"] = pack_array(np.asarray(p.cells, dtype="<u4"))
+        body["votes"] = pack_array(np.asarray(p.votes, dtype="<u2"))
+    return body
+
+
+def _packed_cells(body: dict) -> int:
+    """Cells a patch body declares in packed form (0 for the raw-array form or a malformed one:
+    that fails in _dec_patch)."""
+    packed = body.get("packed") if isinstance(body, dict) else None
+    n = packed.get("n") if isinstance(packed, dict) else None
+    return n if isinstance(n, int) and n > 0 else 0
+
+
+def _dec_cells_votes(body: dict, what: str) -> tuple[np.ndarray, np.ndarray, bytes | None]:
+    if "packed" not in body:
+        cells = unpack_array(body.get("cells"), f"{what}.cells", "<u4", 1)
+        votes = unpack_array(body.get("votes"), f"{what}.votes", "<u2", 2, NUM_CLASSES)
+        if votes.shape[0] != cells.shape[0]:
+            raise CodecError(f"{what}: votes must have one row per cell ({cells.shape[0]})")
+        if cells.size and int(cells.max()) >= CELLS_PER_TILE:
+            raise CodecError(f"{what}: cell index out of range [0, {CELLS_PER_TILE})")
+        if cells.size > 1 and not np.all(np.diff(cells.astype(np.int64)) > 0):
+            raise CodecError(f"{what}: cells must be sorted and unique")
+        return cells, votes, None
+    if "cells" in body or "votes" in body:
+        raise CodecError(f"{what}: either packed or cells + votes, not both")
+    packed = body["packed"]
+    if not isinstance(packed, dict) or set(packed) != {"codec", "n", "data"}:
+        raise CodecError(f"{what}.packed: expected a map {{codec, n, data}}")
+    if packed["codec"] != PACKED_CODEC:
+        raise CodecError(f"{what}.packed: unknown codec {packed['codec']!r}, expected "
+                         f"{PACKED_CODEC}")
+    n, data = packed["n"], packed["data"]
+    if not isinstance(n, int) or isinstance(n, bool) or not 0 <= n <= CELLS_PER_TILE:
+        raise CodecError(f"{what}.packed: n must be an int in [0, {CELLS_PER_TILE}]")
+    if not isinstance(data, bytes):
+        raise CodecError(f"{what}.packed: data must be bytes")
+    cells, votes = unpack_cells_votes(data, n, f"{what}.packed")
+    return cells, votes, data
 
 
 def _dec_patch(body: dict) -> GridPatch:
     what = "GridPatch"
     if not isinstance(body, dict):
         raise CodecError(f"{what}: body must be a map")
-    cells = unpack_array(body.get("cells"), f"{what}.cells", "<u4", 1)
-    votes = unpack_array(body.get("votes"), f"{what}.votes", "<u2", 2, NUM_CLASSES)
-    if votes.shape[0] != cells.shape[0]:
-        raise CodecError(f"{what}: votes must have one row per cell ({cells.shape[0]})")
-    if cells.size and int(cells.max()) >= CELLS_PER_TILE:
-        raise CodecError(f"{what}: cell index out of range [0, {CELLS_PER_TILE})")
-    if cells.size > 1 and not np.all(np.diff(cells.astype(np.int64)) > 0):
-        raise CodecError(f"{what}: cells must be sorted and unique")
+    cells, votes, packed = _dec_cells_votes(body, what)
     t_first = _field(body, "t_first_ns", int, what)
     t_last = _field(body, "t_last_ns", int, what)
     if t_last < t_first:
@@ -123,17 +207,21 @@ def _dec_patch(body: dict) -> GridPatch:
         t_first_ns=t_first,
         t_last_ns=t_last,
         traversal=_field(body, "traversal", str, what),
+        packed=packed,
     )
 
 
-def _enc_batch(b: IngestBatch) -> dict:
-    return {"patches": [_enc_patch(p) for p in b.patches]}
+def _enc_batch(b: IngestBatch, packed: bool = True) -> dict:
+    return {"patches": [_enc_patch(p, packed) for p in b.patches]}
 
 
 def _dec_batch(body: dict) -> IngestBatch:
     patches = _field(body, "patches", list, "IngestBatch")
     if len(patches) > MAX_BATCH_PATCHES:
         raise CodecError(f"IngestBatch: at most {MAX_BATCH_PATCHES} patches, got {len(patches)}")
+    declared = sum(_packed_cells(p) for p in patches)
+    if declared > MAX_MESSAGE_CELLS:  # checked before inflating anything
+        raise CodecError(f"IngestBatch: at most {MAX_MESSAGE_CELLS} cells, got {declared}")
     return IngestBatch([_dec_patch(p) for p in patches])
 
 
@@ -230,12 +318,14 @@ _CODECS = {
 _DECODERS = {name: dec for name, _, dec in _CODECS.values()}
 
 
-def encode(msg) -> bytes:
+def encode(msg, *, packed: bool = True) -> bytes:
+    """Message -> bytes; `packed=False` writes grid patches as DESIGN.md's raw arrays."""
     try:
         name, enc, _ = _CODECS[type(msg)]
     except KeyError as exc:
         raise CodecError(f"cannot encode {type(msg).__name__}") from exc
-    return msgpack.packb({"v": VERSION, "type": name, "body": enc(msg)}, use_bin_type=True)
+    body = enc(msg, packed) if enc in (_enc_patch, _enc_batch) else enc(msg)
+    return msgpack.packb({"v": VERSION, "type": name, "body": body}, use_bin_type=True)
 
 
 def decode(data: bytes, expect: type | None = None):

@@ -15,10 +15,14 @@ class GridPatch:
     vehicle: str
     tile: tuple[int, int]
     cells: np.ndarray  # uint32 [n], flat row * 512 + col, sorted, unique
-    votes: np.ndarray  # uint16 [n, NUM_CLASSES] counts per class
+    votes: np.ndarray  # uint16 [n, NUM_CLASSES] counts per class (uint8 off a packed wire form)
     t_first_ns: int
     t_last_ns: int
     traversal: str  # id of the drive
+    # cells + votes exactly as they came on the wire (common.codec.pack_cells_votes), set by the
+    # decoder only, so the shard's store writes them without packing again; not part of the
+    # value (encode always packs cells + votes afresh)
+    packed: bytes | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)

@@ -74,17 +74,79 @@ def test_codec_round_trips_every_message():
 def test_codec_rejects_malformed_batches(mutate, message):
     import msgpack
 
-    env = msgpack.unpackb(codec.encode(IngestBatch([_patch()])), raw=False)
+    env = msgpack.unpackb(codec.encode(IngestBatch([_patch()]), packed=False), raw=False)
     mutate(env)
     with pytest.raises(CodecError, match=message):
         codec.decode(msgpack.packb(env, use_bin_type=True))
 
 
+def _packed_env(patch=None):
+    import msgpack
+
+    return msgpack.unpackb(codec.encode(IngestBatch([patch or _patch()])), raw=False)
+
+
+def _deflated(raw: bytes) -> bytes:
+    import zlib
+
+    return zlib.compress(raw, 1)
+
+
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda p: p["packed"].update(codec="zlib-dcv/9"), "unknown codec"),
+        (lambda p: p["packed"].update(n=4), "exactly 4 cells"),
+        (lambda p: p["packed"].update(n=2), "exactly 2 cells"),
+        (lambda p: p["packed"].update(n=512 * 512 + 1), "n must be an int"),
+        (lambda p: p["packed"].update(data=b"not zlib"), "not zlib-dcv/1 data"),
+        (lambda p: p["packed"].update(data=p["packed"]["data"] + b"tail"), "exactly 3 cells"),
+        (lambda p: p["packed"].update(data=p["packed"]["data"][:-3]), "exactly 3 cells"),
+        (lambda p: p.update(cells={"dtype": "<u4", "shape": [0], "data": b""}), "not both"),
+        (lambda p: p["packed"].pop("n"), "expected a map"),
+        # deltas 1, 0, 4: a repeated cell; 1, 262143: past the tile's last cell
+        (lambda p: p["packed"].update(data=_deflated(
+            np.array([1, 0, 4], "<u4").tobytes() + bytes(36))), "sorted and unique"),
+        (lambda p: p["packed"].update(n=2, data=_deflated(
+            np.array([1, 512 * 512 - 1], "<u4").tobytes() + bytes(24))), "out of range"),
+    ],
+)
+def test_codec_rejects_malformed_packed_patches(mutate, message):
+    import msgpack
+
+    env = _packed_env()
+    mutate(env["body"]["patches"][0])
+    with pytest.raises(CodecError, match=message):
+        codec.decode(msgpack.packb(env, use_bin_type=True))
+
+
+def test_codec_packs_patches_small_and_refuses_a_batch_that_would_inflate_too_far(rng):
+    import msgpack
+
+    cells = np.sort(rng.choice(512 * 512, 20000, replace=False)).astype(np.uint32)
+    votes = np.zeros((len(cells), 6), np.uint16)
+    votes[np.arange(len(cells)), rng.integers(1, 6, len(cells))] = rng.integers(1, 13, len(cells))
+    patch = GridPatch("p", "v", (0, 0), cells, votes, 1, 2, "d")
+    packed, raw = codec.encode(patch), codec.encode(patch, packed=False)
+    assert len(packed) < len(raw) / 4
+    for data in (packed, raw):
+        q = codec.decode(data, expect=GridPatch)
+        assert np.array_equal(q.cells, cells) and np.array_equal(q.votes, votes)
+    # 17 full tiles declared: more cells than a 64 MB message of raw arrays could carry
+    env = _packed_env()
+    env["body"]["patches"] *= 17
+    for body in env["body"]["patches"]:
+        body["packed"] = {**body["packed"], "n": 512 * 512}
+    with pytest.raises(CodecError, match="at most 4194304 cells"):
+        codec.decode(msgpack.packb(env, use_bin_type=True))
+
+
 def test_codec_rejects_out_of_range_and_unsorted_cells():
     for cells in ([1, 512 * 512], [5, 1]):
-        data = codec.encode(IngestBatch([_patch(cells=cells)]))
-        with pytest.raises(CodecError):
-            codec.decode(data)
+        for packed in (True, False):
+            data = codec.encode(IngestBatch([_patch(cells=cells)]), packed=packed)
+            with pytest.raises(CodecError):
+                codec.decode(data)
 
 
 def test_codec_rejects_garbage_and_nan():

@@ -1,7 +1,9 @@
 """The shard's durable store: SQLite in WAL mode, one file per shard (DESIGN.md: Delivery).
 
-Holds every applied patch (id, tile, traversal, times, cells as uint32, votes as uint8 where they
-fit, else uint16) and each tile's compressed form with its version. The new patches of a batch, or
+Holds every applied patch (id, tile, traversal, times, and its cells + votes as they came on the
+wire, common.codec.pack_cells_votes, ~1.2 bytes per cell; rows written before that hold cells as
+uint32 and votes as uint8 where they fit, else uint16, and are still read) and each tile's
+compressed form with its version. The new patches of a batch, or
 of a group of batches, are written in ONE transaction, committed (fsync'd with synchronous=FULL)
 before the shard acks; on restart the shard replays the stored patches."""
 
@@ -13,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from common.classes import NUM_CLASSES
+from common.codec import pack_cells_votes, unpack_cells_votes
 from common.messages import GridPatch
 
 logger = logging.getLogger(__name__)
@@ -22,7 +25,8 @@ CREATE TABLE IF NOT EXISTS patches (
     patch_id TEXT PRIMARY KEY, tx INTEGER NOT NULL, ty INTEGER NOT NULL,
     vehicle TEXT NOT NULL, traversal TEXT NOT NULL,
     t_first_ns INTEGER NOT NULL, t_last_ns INTEGER NOT NULL,
-    cells BLOB NOT NULL, votes BLOB NOT NULL
+    cells BLOB NOT NULL, votes BLOB NOT NULL,
+    packed_n INTEGER  -- cells of the packed form in `cells` (votes empty); NULL: raw arrays
 );
 CREATE TABLE IF NOT EXISTS tiles (
     tx INTEGER NOT NULL, ty INTEGER NOT NULL, version INTEGER NOT NULL,
@@ -42,6 +46,9 @@ class ShardStore:
         self.db.execute("PRAGMA journal_mode=WAL")
         self.db.execute(f"PRAGMA synchronous={synchronous}")
         self.db.executescript(SCHEMA)
+        columns = {row[1] for row in self.db.execute("PRAGMA table_info(patches)")}
+        if "packed_n" not in columns:  # a store from before packed patches
+            self.db.execute("ALTER TABLE patches ADD COLUMN packed_n INTEGER")
 
     def close(self) -> None:
         self.db.close()
@@ -60,23 +67,25 @@ class ShardStore:
             (
                 p.patch_id, int(p.tile[0]), int(p.tile[1]), p.vehicle, p.traversal,
                 int(p.t_first_ns), int(p.t_last_ns),
-                np.asarray(p.cells, dtype="<u4").tobytes(),
-                _votes_blob(np.asarray(p.votes)),
+                p.packed if p.packed is not None else pack_cells_votes(p.cells, p.votes),
+                b"", len(p.cells),
             )
             for p in patches
         ]
         with self._transaction():
-            self.db.executemany("INSERT OR IGNORE INTO patches VALUES (?,?,?,?,?,?,?,?,?)", rows)
+            self.db.executemany("INSERT OR IGNORE INTO patches VALUES (?,?,?,?,?,?,?,?,?,?)",
+                                rows)
 
     def load_patches(self) -> Iterator[GridPatch]:
         cur = self.db.execute("SELECT * FROM patches ORDER BY rowid")
-        for pid, tx, ty, vehicle, trav, t0, t1, cells, votes in cur:
-            c = np.frombuffer(cells, dtype="<u4")
-            yield GridPatch(
-                patch_id=pid, vehicle=vehicle, tile=(tx, ty), cells=c,
-                votes=_votes_from_blob(votes, len(c)),
-                t_first_ns=t0, t_last_ns=t1, traversal=trav,
-            )
+        for pid, tx, ty, vehicle, trav, t0, t1, cells, votes, packed_n in cur:
+            if packed_n is None:
+                c = np.frombuffer(cells, dtype="<u4")
+                v = _votes_from_blob(votes, len(c))
+            else:
+                c, v = unpack_cells_votes(cells, packed_n, f"stored patch {pid!r}")
+            yield GridPatch(patch_id=pid, vehicle=vehicle, tile=(tx, ty), cells=c, votes=v,
+                            t_first_ns=t0, t_last_ns=t1, traversal=trav)
 
     def count_patches(self) -> int:
         return int(self.db.execute("SELECT COUNT(*) FROM patches").fetchone()[0])
@@ -95,15 +104,9 @@ class ShardStore:
         return _Transaction(self.db)
 
 
-def _votes_blob(votes: np.ndarray) -> bytes:
-    """uint8 counts when they all fit (most patches: 37 % fewer bytes to write and fsync),
-    else little-endian uint16; the length tells which (n * 6 or n * 12 bytes)."""
-    if votes.size and int(votes.max()) > 255:
-        return votes.astype("<u2").tobytes()
-    return votes.astype(np.uint8).tobytes()
-
-
 def _votes_from_blob(blob: bytes, n: int) -> np.ndarray:
+    """Rows written before packed patches: uint8 counts when they all fitted, else uint16; the
+    length tells which (n * 6 or n * 12 bytes)."""
     dtype = np.uint8 if len(blob) == n * NUM_CLASSES else np.dtype("<u2")
     return np.frombuffer(blob, dtype=dtype).reshape(n, NUM_CLASSES).astype(np.uint16)
 

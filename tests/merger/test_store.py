@@ -1,5 +1,6 @@
 """DurableShard over a real SQLite store: ack after commit, restart rebuilds the same map."""
 
+import dataclasses
 import sqlite3
 
 import numpy as np
@@ -170,3 +171,43 @@ def test_a_recovery_that_retires_as_it_replays_rebuilds_the_same_map(tmp_path, m
     assert second.stats().counters["digest"] == digest
     assert {t: second.tile(t).version for t in second.tiles()} == versions
     second.store.close()
+
+
+def test_a_store_from_before_packed_patches_replays_to_the_same_map(tmp_path):
+    """Rows of the old layout (cells uint32, votes uint8 / uint16 blobs, no packed_n column)
+    replay next to new packed rows: the map equals one built from packed rows only."""
+    batches = _batches()
+    first = [_with_count(p, 300) if k % 2 == 0 else p  # a count only uint16 holds: the
+             for k, p in enumerate(batches[0] + batches[1])]  # old layout's reason for it
+    old = tmp_path / "old.sqlite"
+    db = sqlite3.connect(old)
+    db.executescript("""CREATE TABLE patches (
+        patch_id TEXT PRIMARY KEY, tx INTEGER NOT NULL, ty INTEGER NOT NULL,
+        vehicle TEXT NOT NULL, traversal TEXT NOT NULL,
+        t_first_ns INTEGER NOT NULL, t_last_ns INTEGER NOT NULL,
+        cells BLOB NOT NULL, votes BLOB NOT NULL);""")
+    for k, p in enumerate(first):  # both blob widths of the old layout
+        votes = np.asarray(p.votes, "<u2" if k % 2 == 0 else np.uint8)
+        db.execute("INSERT INTO patches VALUES (?,?,?,?,?,?,?,?,?)",
+                   (p.patch_id, *p.tile, p.vehicle, p.traversal, p.t_first_ns, p.t_last_ns,
+                    np.asarray(p.cells, "<u4").tobytes(), votes.tobytes()))
+    db.commit()
+    db.close()
+    upgraded = _open(old)
+    assert upgraded.shard.counters["patches_applied"] == len(first)
+    for b in batches[2:]:
+        upgraded.ingest(codec.encode(IngestBatch(b)))
+    reopened = _open(old)
+
+    fresh = _open(tmp_path / "new.sqlite")
+    for b in [first, *batches[2:]]:
+        fresh.ingest(codec.encode(IngestBatch(b)))
+    fresh.flush()
+    assert reopened.shard.digest() == fresh.shard.digest()
+    assert reopened.shard.counters["patches_applied"] == sum(len(b) for b in batches)
+
+
+def _with_count(p, count):
+    votes = np.asarray(p.votes, np.uint16).copy()
+    votes[0, 0] = count
+    return dataclasses.replace(p, votes=votes)

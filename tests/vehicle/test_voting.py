@@ -103,7 +103,7 @@ def test_wrong_votes_dtype_is_rejected():
     import msgpack
 
     p = _patch()
-    msg = msgpack.unpackb(codec.encode(p), raw=False)
+    msg = msgpack.unpackb(codec.encode(p, packed=False), raw=False)
     msg["body"]["votes"]["dtype"] = "<f4"
     with pytest.raises(CodecError):
         codec.decode(msgpack.packb(msg), expect=GridPatch)
