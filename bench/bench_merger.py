@@ -334,6 +334,7 @@ def ingest_scaling(quick: bool, window: int = 8) -> dict:
             "cores": os.cpu_count(),
             "shard_cores": len(PINNING.get("shard", ())) or os.cpu_count(),
             "requests_in_flight": window,
+            "opencv_threads_per_shard": RoadmapConfig().merger.opencv_threads,
             "rounds": {"one_shard": [round(r["per_s"], 1) for r in ones],
                        "two_shards": [round(r["per_s"], 1) for r in twos]},
             "best_runs": {"one_shard": _rounded(one), "two_shards": _rounded(two)},

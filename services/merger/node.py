@@ -1,7 +1,8 @@
 """`roadmap merger --shard I --shards N [--store PATH]`: one tile merger shard on Zenoh.
 
-Ingest (`roadmap/ingest/s<I>`, complete): a FifoChannel drained by the main loop, which takes
-the queries waiting together (up to merger.ingest_group), stores their new patches in one
+Ingest (`roadmap/ingest/s<I>`, complete): a bounded queue (merger.ingest_queue; full, it holds
+the RX thread back: backpressure) drained by the main loop, which wakes as a query arrives and
+takes the queries waiting together (up to merger.ingest_group), stores their new patches in one
 transaction (group commit: one fsync), applies them and then replies each its IngestAck; a
 flush thread recomputes and recompresses changed tiles meanwhile. Tiles
 (`roadmap/tile/<tx>/<ty>`, one complete queryable per held tile) and stats
@@ -16,8 +17,10 @@ import queue
 import threading
 import time
 
+import cv2
+
 from common import codec, keys
-from common.bus import Callback, FifoChannel, ZError, open_session, stop_event
+from common.bus import Callback, ZError, open_session, stop_event
 from common.config import RoadmapConfig
 from common.contours import CODEC
 from common.errors import CodecError, ConfigError
@@ -29,7 +32,7 @@ from services.merger.store import ShardStore
 
 logger = logging.getLogger(__name__)
 
-IDLE_WAIT_S = 0.005
+IDLE_WAIT_S = 0.1  # the main loop's longest wait for an ingest query (then it checks stop)
 GROUP_BYTES = 32 << 20  # payload bytes of the ingest queries taken into one group commit
 
 
@@ -68,9 +71,10 @@ class MergerNode:
         self._changed_since: float | None = None  # first ingest not yet flushed
         self._publish_lock = threading.Lock()
         self.serve_queue: queue.Queue = queue.Queue()
+        self.ingest_queue: queue.Queue = queue.Queue(maxsize=max(1, int(ingest_queue)))
         self.tile_queryables = {}
-        self.ingest = session.declare_queryable(keys.ingest(shard), FifoChannel(ingest_queue),
-                                                complete=True)
+        self.ingest = session.declare_queryable(
+            keys.ingest(shard), Callback(self.ingest_queue.put, indirect=False), complete=True)
         self.stats_q = session.declare_queryable(keys.stats("merger", f"s{shard}"),
                                                  self._enqueue_callback(), complete=True)
         for tile in durable.tiles():
@@ -96,11 +100,9 @@ class MergerNode:
         self.flushing.start()
         try:
             while not stop.is_set():
-                group = self._waiting_ingest()
+                group = self._waiting_ingest(IDLE_WAIT_S)
                 if group:
                     self._handle_ingest(group)
-                else:
-                    stop.wait(IDLE_WAIT_S)
         finally:
             self._stop.set()
             self.flushing.join(timeout=30.0)
@@ -131,15 +133,23 @@ class MergerNode:
                 self._changed_since = since
             pause = max(self.debounce_s, time.monotonic() - now)
 
-    def _waiting_ingest(self) -> list:
-        """The ingest queries waiting now (at most ingest_group of them, ~GROUP_BYTES)."""
+    def _waiting_ingest(self, timeout_s: float) -> list:
+        """The next ingest query (waiting up to timeout_s for one: woken as it arrives, not by
+        polling, since a shard with few requests in flight would otherwise idle between them)
+        and those waiting behind it (at most ingest_group in all, ~GROUP_BYTES)."""
         group, size = [], 0
+        try:
+            group.append(self.ingest_queue.get(timeout=timeout_s))
+        except queue.Empty:
+            return group
+        size += _payload_size(group[0])
         while len(group) < self.ingest_group and size < GROUP_BYTES:
-            query = self.ingest.try_recv()
-            if query is None:
+            try:
+                query = self.ingest_queue.get_nowait()
+            except queue.Empty:
                 break
             group.append(query)
-            size += len(query.payload) if query.payload is not None else 0
+            size += _payload_size(query)
         return group
 
     def _handle_ingest(self, group: list) -> None:
@@ -208,6 +218,10 @@ class MergerNode:
             query.reply(key, codec.encode(msg))
 
 
+def _payload_size(query) -> int:
+    return len(query.payload) if query.payload is not None else 0
+
+
 def _tile_selector(parameters) -> tuple[int | None, str]:
     """`?since=<v>` and `?codec=raw|contour` -> (since, codec); CodecError on anything else."""
     since_text = parameters.get("since")
@@ -222,6 +236,8 @@ def _tile_selector(parameters) -> tuple[int | None, str]:
 
 
 def main(args, cfg: RoadmapConfig) -> int:
+    if cfg.merger.opencv_threads > 0:
+        cv2.setNumThreads(cfg.merger.opencv_threads)
     stop = stop_event()
     store_path = args.store or f"merger-s{args.shard}.sqlite"
     durable = get_durable_shard(args.shard, args.shards, store_path, cfg)
