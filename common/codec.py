@@ -90,12 +90,11 @@ def unpack_cells_votes(data: bytes, n: int, what: str = "packed cells") -> tuple
     deltas = np.frombuffer(raw, dtype="<u4", count=n)
     if n > 1 and int(deltas[1:].min()) == 0:
         raise CodecError(f"{what}: cells must be sorted and unique")
-    cells = np.cumsum(deltas, dtype=np.int64)
-    if n and int(cells[-1]) >= CELLS_PER_TILE:
+    if n and int(deltas.sum(dtype=np.uint64)) >= CELLS_PER_TILE:  # the last cell, no wrap
         raise CodecError(f"{what}: cell index out of range [0, {CELLS_PER_TILE})")
     dtype = np.uint8 if width == 1 else np.dtype("<u2")
     votes = np.frombuffer(raw, dtype=dtype, offset=4 * n).reshape(NUM_CLASSES, n).T
-    return cells.astype(np.uint32), votes
+    return np.cumsum(deltas, dtype=np.uint32), votes
 
 
 # -- field checks -------------------------------------------------------------------------------
