@@ -432,7 +432,11 @@ class DemoRun:
     def _pipeline(self, stats: dict) -> dict:
         v = self.vehicle_summaries
         shards = [c or {} for c in stats.values()]
+        upload = sum(int(x.get("bytes_sent", 0)) for x in v)
+        driven = sum(_path_km(_truth_xy(p.parent)) for p in self._logs_mapping_all())
         return {
+            "upload_bytes": upload,  # every ingest request's payload, retries included
+            "upload_kb_per_km_driven": round(upload / 1024 / driven, 2) if driven > 0 else None,
             "patches_sent": sum(int(x.get("patches_sent", 0)) for x in v),
             "patches_acked": sum(int(x.get("patches_acked", 0)) for x in v),
             "patches_applied": sum(int(c.get("patches_applied", 0)) for c in shards),
@@ -512,6 +516,10 @@ class DemoRun:
         return on_map[k] & after
 
 
+def _path_km(xy: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()) / 1000.0 if len(xy) else 0.0
+
+
 def _truth_xy(log_dir: Path) -> np.ndarray:
     s = DriveLog(log_dir).streams
     poses = s.get("truth_pose", s["frame_pose_true"])
@@ -584,7 +592,8 @@ def format_table(report: dict) -> str:
                      f"{_f(c.get('codec_precision'), '{:.2f}')}"
                      f"/{_f(c.get('codec_recall'), '{:.2f}')}")
     lines.append(f"pipeline: sent {p['patches_sent']} acked {p['patches_acked']} applied "
-                 f"{p['patches_applied']} duplicates {p['duplicates']} errors {p['errors']}")
+                 f"{p['patches_applied']} duplicates {p['duplicates']} errors {p['errors']}; "
+                 f"upload {_f(p.get('upload_kb_per_km_driven'), '{:.0f}')} KB per km driven")
     if "update" in report:
         n = report["update"]["traversals_to_follow"]
         lines.append(f"repaint: map followed after {n} traversals")

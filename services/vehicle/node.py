@@ -140,6 +140,7 @@ class Uploader(threading.Thread):
         self.wake = threading.Event()
         self.alive: set[str] = set()
         self.sent = self.errors = 0  # send attempts of this run (retries included)
+        self.bytes_sent = 0  # their request payloads
         self.sent_ids: set[str] = set()
         self._cache: dict[str, GridPatch] = {}
         self._live = session.liveliness().declare_subscriber(
@@ -190,6 +191,7 @@ class Uploader(threading.Thread):
     def _send(self, shard: int, patches: list[GridPatch]) -> bool:
         payload = codec.encode(IngestBatch(patches))
         self.sent += len(patches)
+        self.bytes_sent += len(payload)
         self.sent_ids.update(p.patch_id for p in patches)
         replies = self.session.get(
             keys.ingest(shard), payload=payload, timeout=self.cfg.vehicle.upload_timeout_s
@@ -330,6 +332,7 @@ def main(args, cfg: RoadmapConfig) -> int:
         # distinct patches that left the vehicle, also in runs before a restart (acked ones)
         "patches_sent": len(uploader.sent_ids | outbox.acked_ids()),
         "send_attempts": uploader.sent,
+        "bytes_sent": uploader.bytes_sent,  # ingest payloads of this run, retries included
         "patches_acked": counts["acked"],
         "patches_accepted": counts["accepted"],
         "duplicates": counts["duplicates"],

@@ -65,6 +65,8 @@ def test_pipeline_counts_are_consistent(runs):
     assert p["patches_acked"] == p["patches_applied"]  # nothing lost, nothing counted twice
     assert p["errors"] == 0
     assert p["patches_sent"] >= p["patches_acked"]
+    # packed patches: ~1 byte per swept 0.1 m cell; the raw arrays' 16 bytes would be ~13 MB/km
+    assert 0 < p["upload_kb_per_km_driven"] < 3000
 
 
 def test_map_quality_and_size(runs):
