@@ -47,7 +47,9 @@ def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
     its own seed (seed, k) alone, so the first n chunks are the same whatever `workers` renders
     them; rendering stops at max_frames or when budget_s is spent (whichever comes first)."""
     cache_dir = cache_dir or Path(tempfile.gettempdir()) / "roadmap-segtrain"
-    path = cache_dir / f"towns-v5-s{seed}-{input_size[0]}x{input_size[1]}-n{max_frames}.npz"
+    # the budget is in the key: a set cut short by a smaller budget is not reused for a larger
+    path = cache_dir / (f"towns-v5-s{seed}-{input_size[0]}x{input_size[1]}-n{max_frames}"
+                        f"-b{round(budget_s)}.npz")
     if cache and path.is_file():
         logger.info("training frames from cache %s", path)
         with np.load(path) as z:
