@@ -356,23 +356,31 @@ def tile_labels(
     Dense per-tile accumulators; traversals are visited newest first and each cell stops taking
     observations once it has `window` of them, so no per-cell sort is needed. `idle`, if given,
     receives the ids of the traversals no cell took an observation from."""
-    # per (cell, class): ballots in the high 32 bits, the votes behind them in the low 32 bits,
-    # so one integer add counts both and an argmax ranks by ballots, then votes
-    packed = np.zeros(CELLS_PER_TILE * SLOTS, dtype=np.uint64)
-    seen = np.zeros(CELLS_PER_TILE, dtype=np.uint16)  # observations taken per cell
     # 2. most recent first, by the traversals' own time then id (arrival order never matters)
     order = sorted(traversals, key=lambda kv: (kv[1].t_first_ns, kv[0]), reverse=True)
-    for tid, trav in order:
-        cells, ballot, weight = trav.ballots(footprint_cells)  # 1. one per traversal and cell
+    ballots = [(tid, trav.ballots(footprint_cells)) for tid, trav in order]  # 1. one per cell
+    # accumulators over the observed cells only (a tile's union of the traversals' cells, a
+    # fraction of its 262144): compact rows, found through a lookup table
+    hit = np.zeros(CELLS_PER_TILE, dtype=bool)
+    for _, (cells, _, _) in ballots:
+        hit[cells] = True
+    observed = np.flatnonzero(hit)
+    row_of = np.empty(CELLS_PER_TILE, dtype=np.intp)
+    row_of[observed] = np.arange(len(observed))
+    # per (cell, class): ballots in the high 32 bits, the votes behind them in the low 32 bits,
+    # so one integer add counts both and an argmax ranks by ballots, then votes
+    packed = np.zeros(len(observed) * SLOTS, dtype=np.uint64)
+    seen = np.zeros(len(observed), dtype=np.uint16)  # observations taken per cell
+    for tid, (cells, ballot, weight) in ballots:
+        at = row_of[cells]
         if len(order) > window:  # 2. only each cell's `window` newest observations count
-            fresh = seen[cells] < window
-            cells, ballot, weight = cells[fresh], ballot[fresh], weight[fresh]
-            if idle is not None and not len(cells):
+            fresh = seen[at] < window
+            at, ballot, weight = at[fresh], ballot[fresh], weight[fresh]
+            if idle is not None and not len(at):
                 idle.append(tid)
-        seen[cells] += 1
-        packed[cells.astype(np.intp) * SLOTS + ballot] += weight.astype(np.uint64) + BALLOT
-    observed = np.flatnonzero(seen)
-    scores = packed.reshape(-1, SLOTS)[observed]
+        seen[at] += 1
+        packed[at * SLOTS + ballot] += weight.astype(np.uint64) + BALLOT
+    scores = packed.reshape(-1, SLOTS)
     rows = np.arange(len(observed))
     low = np.uint64(BALLOT - 1)
     # 3. paint (its best class) against the pooled ground ballots (road + none + no paint),
