@@ -23,6 +23,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -262,14 +263,32 @@ def _wait_shards(session, n_shards: int, timeout_s: float = 30.0) -> None:
 
 
 def _pipelined(session, work, window: int) -> None:
-    """Keep `window` gets in flight; every batch must be acked without error."""
-    inflight = []
-    for key, payload in work:
-        inflight.append(session.get(key, payload=payload, timeout=30.0))
-        if len(inflight) >= window:
-            _expect_ack(inflight.pop(0))
-    for h in inflight:
-        _expect_ack(h)
+    """`window` senders, each with one get in flight, taking the next batch as soon as its own
+    is acked (as `window` vehicles do; acks awaited in send order would hold back a fast
+    shard's senders behind a slow shard's oldest request); every batch must be acked without
+    error."""
+    todo = iter(work)
+    lock = threading.Lock()
+    failed: list[BaseException] = []
+
+    def sender() -> None:
+        while not failed:
+            with lock:
+                item = next(todo, None)
+            if item is None:
+                return
+            try:
+                _expect_ack(session.get(item[0], payload=item[1], timeout=30.0))
+            except BaseException as exc:  # noqa: BLE001 - re-raised on the calling thread
+                failed.append(exc)
+
+    senders = [threading.Thread(target=sender, daemon=True) for _ in range(window)]
+    for t in senders:
+        t.start()
+    for t in senders:
+        t.join()
+    if failed:
+        raise failed[0]
 
 
 def _expect_ack(handler) -> None:
