@@ -113,6 +113,11 @@ def test_ingest_tiles_stats_updates_and_bad_input(router, merger):
         bad_inputs.append(_mutate_patch(p, cells={"dtype": "<u8", "shape": [1], "data": b"\0" * 8}))
         bad_inputs.append(_mutate_patch(p, patch_id="new", cells={
             "dtype": "<u4", "shape": [1], "data": np.array([600000], "<u4").tobytes()}))
+        packed = codec._enc_patch(p)["packed"]  # the packed wire form, corrupted
+        bad_inputs.append(_mutate_patch(p, packed_form=True, patch_id="new",
+                                        packed={**packed, "data": packed["data"][:-4]}))
+        bad_inputs.append(_mutate_patch(p, packed_form=True, patch_id="new",
+                                        packed={**packed, "n": packed["n"] + 1}))
         for data in bad_inputs:
             (reply,) = [r for r in session.get(keys.ingest(0), payload=data, timeout=3.0)]
             assert codec.decode(reply.ok.payload.to_bytes(), expect=IngestAck).error
@@ -143,8 +148,8 @@ def test_ingest_tiles_stats_updates_and_bad_input(router, merger):
     assert merger.wait(15) == 0
 
 
-def _mutate_patch(p, **changes):
-    body = codec._enc_patch(p)
+def _mutate_patch(p, packed_form=False, **changes):
+    body = codec._enc_patch(p, packed_form)
     body.update(changes)
     return msgpack.packb({"v": 1, "type": "IngestBatch", "body": {"patches": [body]}},
                          use_bin_type=True)
