@@ -97,7 +97,7 @@ class CoarseSearch:
             scores = self._score_yaw(pts, bit, weight, yaw, grid, win, x0, y0, size)
             best = np.argsort(scores)[-self.top_k :]
             scored.extend(Candidate(np.array([*grid[i], yaw]), float(scores[i])) for i in best)
-        return _distinct(sorted(scored, key=lambda c: -c.score), self.top_k)
+        return distinct(sorted(scored, key=lambda c: -c.score), lambda c: c.pose, k=self.top_k)
 
     def _score_yaw(self, pts, bit, weight, yaw, grid, win, x0, y0, size):
         c, s = math.cos(yaw), math.sin(yaw)
@@ -118,18 +118,21 @@ class CoarseSearch:
         return pts, cls
 
 
-def _distinct(
-    cands: list[Candidate], k: int, min_sep_m: float = 1.0, min_sep_rad: float = math.radians(5)
-) -> list[Candidate]:
-    out: list[Candidate] = []
-    for cand in cands:
-        if all(
-            np.hypot(*(cand.pose[:2] - o.pose[:2])) > min_sep_m
-            or abs(math.remainder(cand.pose[2] - o.pose[2], 2 * math.pi)) > min_sep_rad
-            for o in out
-        ):
-            out.append(cand)
-        if len(out) == k:
+def far_apart(a, b, min_sep_m: float = 1.0, min_sep_rad: float = math.radians(5)) -> bool:
+    """Poses (x, y, yaw) more than min_sep_m apart or turned more than min_sep_rad."""
+    return bool(np.hypot(a[0] - b[0], a[1] - b[1]) > min_sep_m
+                or abs(math.remainder(a[2] - b[2], 2 * math.pi)) > min_sep_rad)
+
+
+def distinct(items: list, pose_of, *, k: int | None = None, min_sep_m: float = 1.0,
+             min_sep_rad: float = math.radians(5)) -> list:
+    """The items in order, each kept when its pose is far_apart from every kept one (at most
+    k): the best of every cluster of near-identical poses, for ranked lists."""
+    out: list = []
+    for item in items:
+        if all(far_apart(pose_of(item), pose_of(o), min_sep_m, min_sep_rad) for o in out):
+            out.append(item)
+        if k is not None and len(out) == k:
             break
     return out
 

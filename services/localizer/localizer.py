@@ -15,11 +15,12 @@ from common.classes import Cls
 from common.geometry import se2_between, se2_compose, transform_points_2d
 from services.localizer.ekf import PoseFilter
 from services.localizer.icp import Icp, IcpResult, IpmNoise
-from services.localizer.init import CoarseSearch, fine_overlap
+from services.localizer.init import CoarseSearch, distinct, far_apart, fine_overlap
 from services.localizer.map_cache import TileCache, class_slots
 
 logger = logging.getLogger(__name__)
 
+RIVAL_SEP_RAD = math.radians(3)  # rival poses: more than 1 m or this far from each other
 
 @dataclass
 class Estimate:
@@ -406,16 +407,11 @@ class Localizer:
 
 def _distinct(ranked):
     """(overlap, IcpResult) pairs with poses more than 1 m or 3 deg from every earlier one."""
-    out = []
-    for overlap, res in ranked:
-        if all(_far(res.pose, r.pose) for _, r in out):
-            out.append((overlap, res))
-    return out
+    return distinct(ranked, lambda pair: pair[1].pose, min_sep_rad=RIVAL_SEP_RAD)
 
 
 def _far(a: np.ndarray, b: np.ndarray) -> bool:
-    d = a - b
-    return np.hypot(d[0], d[1]) > 1.0 or abs(math.remainder(d[2], 2 * math.pi)) > math.radians(3)
+    return far_apart(a, b, min_sep_rad=RIVAL_SEP_RAD)
 
 
 def _motion(v: float, w: float, dt: float) -> np.ndarray:
