@@ -76,6 +76,7 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
 
     torch.manual_seed(seed)
     torch.set_num_threads(THREADS)
+    _large_blocks_from_mmap()
     torch.backends.cudnn.benchmark = True
     dev = torch.device(device)
     rng = np.random.default_rng(seed)
@@ -122,6 +123,23 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
         "model_bytes": model_path.stat().st_size, "seed": seed, "device": device,
         "batch": batch,
     }
+
+
+def _large_blocks_from_mmap(threshold: int = 1 << 20) -> None:
+    """Allocate blocks of 1 MB and more with mmap (returned to the OS when freed) instead of the
+    heap. glibc raises its mmap threshold after each large free, after which every step's
+    batch-sized tensors (5-8 MB, several sizes) come from the heap, which fragments: the CPU
+    training process grew ~7 MB per step and was killed for memory (24 GB) after 2100 steps; with
+    this it stays flat (~0.7 GB over 600 steps on 200 frames). A no-op off glibc."""
+    import ctypes
+    import ctypes.util
+
+    m_mmap_threshold = -3  # malloc.h
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.mallopt(m_mmap_threshold, threshold)
+    except (OSError, AttributeError):
+        logger.debug("mallopt unavailable: heap left as it is")
 
 
 def _mean_loss(losses: list) -> float:
