@@ -5,7 +5,7 @@ endian. Anything unexpected raises CodecError naming what was expected. No pickl
 
 Departure from DESIGN.md (Wire format), on purpose: a GridPatch goes out with its cells and
 votes packed (`packed`: {codec, n, data}, see pack_cells_votes) instead of the two raw arrays,
-16 -> about 1.2 bytes per cell: the upload is what a vehicle pays for on a cellular link, and
+16 -> about 1 byte per cell: the upload is what a vehicle pays for on a cellular link, and
 the bytes every router forwards and every shard writes and fsyncs before its ack. The decoder
 still takes the DESIGN form (`cells` + `votes` arrays); `encode(..., packed=False)` writes it."""
 

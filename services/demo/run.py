@@ -365,7 +365,9 @@ class DemoRun:
         return report
 
     def _world_section(self, world) -> dict:
-        self.km_mapped = ev.km_mapped([_truth_xy(p.parent) for p in self._logs_mapping_all()])
+        drives = [_truth_xy(p.parent) for p in self._logs_mapping_all()]
+        self.km_mapped = ev.km_mapped(drives)
+        self.km_driven = sum(_path_km(xy) for xy in drives)  # the pipeline's upload per km
         return {"name": world.name, "km": round(float(world.km_of_road), 4),
                 "km_mapped": round(self.km_mapped, 4)}
 
@@ -433,7 +435,7 @@ class DemoRun:
         v = self.vehicle_summaries
         shards = [c or {} for c in stats.values()]
         upload = sum(int(x.get("bytes_sent", 0)) for x in v)
-        driven = sum(_path_km(_truth_xy(p.parent)) for p in self._logs_mapping_all())
+        driven = self.km_driven  # _world_section
         return {
             "upload_bytes": upload,  # every ingest request's payload, retries included
             "upload_kb_per_km_driven": round(upload / 1024 / driven, 2) if driven > 0 else None,

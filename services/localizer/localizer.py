@@ -22,6 +22,7 @@ logger = logging.getLogger(__name__)
 
 RIVAL_SEP_RAD = math.radians(3)  # rival poses: more than 1 m or this far from each other
 
+
 @dataclass
 class Estimate:
     t_ns: int

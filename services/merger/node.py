@@ -138,18 +138,14 @@ class MergerNode:
         polling, since a shard with few requests in flight would otherwise idle between them)
         and those waiting behind it (at most ingest_group in all, ~GROUP_BYTES)."""
         group, size = [], 0
-        try:
-            group.append(self.ingest_queue.get(timeout=timeout_s))
-        except queue.Empty:
-            return group
-        size += _payload_size(group[0])
         while len(group) < self.ingest_group and size < GROUP_BYTES:
             try:
-                query = self.ingest_queue.get_nowait()
+                query = (self.ingest_queue.get_nowait() if group
+                         else self.ingest_queue.get(timeout=timeout_s))
             except queue.Empty:
                 break
             group.append(query)
-            size += _payload_size(query)
+            size += len(query.payload) if query.payload is not None else 0
         return group
 
     def _handle_ingest(self, group: list) -> None:
@@ -216,10 +212,6 @@ class MergerNode:
             query.reply_del(key)
         elif since is None or msg.version > since:
             query.reply(key, codec.encode(msg))
-
-
-def _payload_size(query) -> int:
-    return len(query.payload) if query.payload is not None else 0
 
 
 def _tile_selector(parameters) -> tuple[int | None, str]:

@@ -1,7 +1,7 @@
 """The shard's durable store: SQLite in WAL mode, one file per shard (DESIGN.md: Delivery).
 
 Holds every applied patch (id, tile, traversal, times, and its cells + votes as they came on the
-wire, common.codec.pack_cells_votes, ~1.2 bytes per cell; rows written before that hold cells as
+wire, common.codec.pack_cells_votes, ~1 byte per cell; rows written before that hold cells as
 uint32 and votes as uint8 where they fit, else uint16, and are still read) and each tile's
 compressed form with its version. The new patches of a batch, or
 of a group of batches, are written in ONE transaction, committed (fsync'd with synchronous=FULL)
