@@ -128,6 +128,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="do not read or write the rendered frames' cache (a temp-dir .npz)")
     p.add_argument("--device", default="cpu", help="torch device: cpu (2 threads) or cuda")
     p.add_argument("--batch", type=int, default=8, help="crops per training step")
+    p.add_argument("--init", default=None,
+                   help="fine-tune from this exported RoadSegNet ONNX file (same widths)")
     _common(p)
 
     p = sub.add_parser("dump-config", help="print the effective configuration as TOML")

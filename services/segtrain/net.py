@@ -4,7 +4,10 @@ Runs on the camera's full resolution (640x360): a 4x4 stride-2 stem sees every p
 far paint is 1-3 px wide there and would vanish in a downscaled input), depthwise-separable
 blocks at 1/4, 1/8 and 1/16 with dilated context, U-Net skips back to 1/2, and the class logits
 upsampled bilinearly to the input size (sub-pixel class boundaries at a 1/2-resolution cost).
-Input (N, 3, H, W) float in [0, 1]; output logits (N, 6, H, W)."""
+Input (N, 3, H, W) float in [0, 1]; output logits (N, num_classes, H, W). Trained with auxiliary
+classes beyond ours (raised curbs), it folds them into none for export: with `export_classes`
+set, channel 0 becomes the maximum of none and the auxiliary channels (so argmax picks none
+wherever an auxiliary class wins), at 1/2 resolution before the upsampling."""
 
 import torch
 from torch import nn
@@ -53,6 +56,7 @@ class RoadSegNet(nn.Module):
         self.dec1 = DSBlock(w2 + w1, w1)
         self.dec0 = DSBlock(w1 + w0, w0)
         self.head = nn.Conv2d(w0, num_classes, 1)
+        self.export_classes = None  # set to NUM_CLASSES to fold the auxiliary classes into 0
 
     def forward(self, x):
         f0 = self.stem(x)
@@ -62,7 +66,12 @@ class RoadSegNet(nn.Module):
         d2 = self.dec2(torch.cat([_up(f3, f2), f2], 1))
         d1 = self.dec1(torch.cat([_up(d2, f1), f1], 1))
         d0 = self.dec0(torch.cat([_up(d1, f0), f0], 1))
-        return _up(self.head(d0), x)
+        logits = self.head(d0)
+        n = self.export_classes
+        if n is not None and n < self.head.out_channels:
+            none = torch.maximum(logits[:, :1], logits[:, n:].amax(1, keepdim=True))
+            logits = torch.cat([none, logits[:, 1:n]], 1)
+        return _up(logits, x)
 
 
 def _up(x, like):
@@ -71,3 +80,65 @@ def _up(x, like):
 
 def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
+
+
+def load_onnx_weights(model: nn.Module, path) -> None:
+    """Initialise `model` from an exported RoadSegNet ONNX file of the same widths (for
+    fine-tuning). The export folded each batch norm into its convolution, so the convolutions
+    take the folded weights and every batch norm becomes the identity with the folded bias as
+    its shift (running mean 0, variance 1 - eps); keep batch norms in eval mode while
+    fine-tuning (`freeze_batch_norm`). Convolutions are matched in execution order; a head with
+    more classes than the file's keeps the file's rows and starts the extra ones as copies of
+    row 0 (none), so the auxiliary classes begin as 'none' and split off from it."""
+    import onnx
+    from onnx import numpy_helper
+
+    proto = onnx.load(str(path))
+    tensors = {t.name: numpy_helper.to_array(t) for t in proto.graph.initializer}
+    nodes = [n for n in proto.graph.node if n.op_type == "Conv"]
+    convs: list[nn.Conv2d] = []
+    hooks = [m.register_forward_hook(lambda m, i, o: convs.append(m))
+             for m in model.modules() if isinstance(m, nn.Conv2d)]
+    was_training = model.training
+    model.eval()
+    with torch.no_grad():
+        model(torch.zeros(1, 3, 64, 64))
+    model.train(was_training)
+    for h in hooks:
+        h.remove()
+    if len(nodes) != len(convs):
+        raise ValueError(f"{path}: {len(nodes)} convolutions, the model has {len(convs)}")
+    norm_after = {}
+    for seq in model.modules():
+        if isinstance(seq, nn.Sequential):
+            for a, b in zip(seq, list(seq)[1:]):
+                if isinstance(a, nn.Conv2d) and isinstance(b, nn.BatchNorm2d):
+                    norm_after[a] = b
+    with torch.no_grad():
+        for node, conv in zip(nodes, convs):
+            w = torch.from_numpy(tensors[node.input[1]].copy())
+            b = (torch.from_numpy(tensors[node.input[2]].copy()) if len(node.input) > 2
+                 else torch.zeros(w.shape[0]))
+            extra = conv.weight.shape[0] - w.shape[0]
+            if extra > 0 and conv is convs[-1]:  # the head: auxiliary classes start as none
+                w = torch.cat([w, w[:1].repeat(extra, 1, 1, 1)])
+                b = torch.cat([b, b[:1].repeat(extra)])
+            if w.shape != conv.weight.shape:
+                raise ValueError(f"{path}: {node.name} has weights {tuple(w.shape)}, "
+                                 f"the model {tuple(conv.weight.shape)}")
+            conv.weight.copy_(w)
+            norm = norm_after.get(conv)
+            if norm is None:
+                conv.bias.copy_(b)
+                continue
+            norm.weight.fill_(1.0)
+            norm.bias.copy_(b)
+            norm.running_mean.zero_()
+            norm.running_var.fill_(1.0 - norm.eps)
+
+
+def freeze_batch_norm(model: nn.Module) -> None:
+    """Batch norms in eval mode (running statistics kept, affine still trained)."""
+    for m in model.modules():
+        if isinstance(m, nn.BatchNorm2d):
+            m.eval()

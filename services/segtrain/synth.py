@@ -76,9 +76,19 @@ def random_camera(rng, width=640, height=360) -> CameraModel:
         roll_deg=rng.normal(0, 0.8), yaw_deg=rng.normal(0, 1.0))
 
 
-def random_pose(world, rng, rare_prob: float = 0.5):
+def random_pose(world, rng, rare_prob: float = 0.5, turn_prob: float = 0.0):
     """(x, y, yaw) on a route, jittered sideways and in heading; with `rare_prob` a pose that
-    looks at a stop line, crosswalk or ground sign 4-20 m ahead (those classes are rare)."""
+    looks at a stop line, crosswalk or ground sign 4-20 m ahead (those classes are rare); with
+    `turn_prob` (training) the heading turned 15-90 deg off the route, as when turning across a
+    junction: lane lines then cross the view like stop lines, and only their width tells."""
+    pose = _route_pose(world, rng, rare_prob)
+    if turn_prob and rng.random() < turn_prob:
+        turn = rng.choice([-1.0, 1.0]) * rng.uniform(math.radians(15), math.radians(90))
+        pose = (pose[0], pose[1], pose[2] + float(turn))
+    return pose
+
+
+def _route_pose(world, rng, rare_prob):
     rare = [m for m in world.markings if m.cls in (Cls.STOP_LINE, Cls.CROSSWALK, Cls.GROUND_SIGN)]
     if rare and rng.random() < rare_prob:
         target = rare[int(rng.integers(len(rare)))].polygon_xy_m.mean(axis=0)
@@ -118,8 +128,10 @@ class GroundMap:
         self.ground_v = np.where(self.hit[:, None], ground_v, 0.0)
 
 
-def render(raster: WorldRaster, ground: GroundMap, pose, rng):
-    """-> (rgb (H, W, 3) uint8, labels (H, W) uint8) of the camera at vehicle pose (x, y, yaw)."""
+def render(raster: WorldRaster, ground: GroundMap, pose, rng, curb_label=None):
+    """-> (rgb (H, W, 3) uint8, labels (H, W) uint8) of the camera at vehicle pose (x, y, yaw).
+    With `curb_label` (an auxiliary training class), curb face and top cells get that label
+    (else 0, none, like sidewalks)."""
     w, h = ground.camera.width, ground.camera.height
     R = rot_z(pose[2])[:2, :2]
     xy = ground.ground_v @ R.T + [pose[0], pose[1]]
@@ -129,16 +141,18 @@ def render(raster: WorldRaster, ground: GroundMap, pose, rng):
     rgb = _shade(lab, fine, coarse, wear, ground, h, style, rng)
     k = ground.ss
     rgb = rgb.reshape(h * k, w * k, 3)
-    labels = np.where(lab >= WALK, 0, lab).reshape(h * k, w * k).astype(np.uint8)
+    curb = 0 if curb_label is None or style["curb"] is None else curb_label  # else: verge
+    labels = np.where(lab == WALK, 0, np.where(lab > WALK, curb, lab))
+    labels = labels.reshape(h * k, w * k).astype(np.uint8)
     if k > 1:
         rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-        labels = _downsample_labels(labels, (w, h))
+        labels = _downsample_labels(labels, (w, h), max(NUM_CLASSES, curb + 1))
     return _camera_effects(rgb, style, rng), labels
 
 
-def _downsample_labels(lab, size):
+def _downsample_labels(lab, size, n_classes=NUM_CLASSES):
     cover = np.stack([cv2.resize((lab == c).astype(np.float32), size, interpolation=cv2.INTER_AREA)
-                      for c in range(NUM_CLASSES)])
+                      for c in range(n_classes)])
     return cover.argmax(0).astype(np.uint8)
 
 
@@ -202,10 +216,12 @@ def _camera_effects(rgb, s, rng):
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
-def render_town_frames(world, n_cameras: int, poses_per_camera: int, rng, supersample=SUPER):
+def render_town_frames(world, n_cameras: int, poses_per_camera: int, rng, supersample=SUPER,
+                       curb_label=None, turn_prob=0.0):
     """Yield (rgb, labels) of random poses in a world, a few poses per jittered camera."""
     raster = WorldRaster(world, rng)
     for _ in range(n_cameras):
         ground = GroundMap(random_camera(rng), supersample)
         for _ in range(poses_per_camera):
-            yield render(raster, ground, random_pose(world, rng), rng)
+            yield render(raster, ground, random_pose(world, rng, turn_prob=turn_prob), rng,
+                         curb_label)

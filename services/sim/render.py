@@ -317,9 +317,14 @@ class FrameRenderer:
             cv2.fillPoly(lab, [hull], 0)
         return lab
 
-    def render(self, pose, T_vehicle_camera, t_s: float, vehicles=()):
-        """(rgb uint8 (H, W, 3), labels uint8 (H, W)) of one frame."""
+    def render(self, pose, T_vehicle_camera, t_s: float, vehicles=(), curb_label=None):
+        """(rgb uint8 (H, W, 3), labels uint8 (H, W)) of one frame. With `curb_label` (training
+        only: an auxiliary class beyond ours), the pixels of raised curbs (vertical face and
+        top band) get that label instead of 0 (none)."""
         lab, geo, (window, mx, my), raised = self._ground_labels(pose, T_vehicle_camera)
+        if curb_label is not None and raised is not None:
+            surf_t, top, on_face = raised
+            lab[(on_face & (lab == 0)) | (top & (surf_t[:, :, 2] >= 128))] = curb_label
         rgb = self._ground(geo, window, mx, my, t_s, raised)
         rgb = self._sky(rgb, geo, pose)
         rgb = self._vehicles(rgb, lab, pose, T_vehicle_camera, vehicles)

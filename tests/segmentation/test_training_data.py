@@ -1,5 +1,6 @@
 """Training-data restyling of procedural towns and the runtime's channel argmax."""
 
+import cv2
 import numpy as np
 
 from common.classes import Cls
@@ -56,3 +57,63 @@ def test_training_chunks_are_seeded_and_do_not_depend_on_the_worker_count(tmp_pa
     assert (l1 >= Cls.LANE_LINE).any()  # paint in view, not an empty road
     f3, _ = training_set(workers=1, **{**kw, "seed": 4})
     assert not np.array_equal(f1, f3)
+
+
+def test_raised_curbs_get_the_auxiliary_training_label_only_when_asked():
+    """Training labels mark raised curbs (face and top) as their own class; without it, the
+    same pixels are none and nothing else changes."""
+    from common.camera import camera_from_config
+    from common.config import CameraConfig
+    from services.segtrain.data import CURB_AUX
+    from services.segtrain.synth import random_pose
+    from services.sim.render import FrameRenderer
+
+    world = load_world("town:0.6", 2)
+    camera = camera_from_config(CameraConfig())
+    renderer = FrameRenderer(world, camera, seed=5)
+    renderer.look.curb = True
+    rng = np.random.default_rng(1)
+    seen = 0
+    for _ in range(4):
+        pose = random_pose(world, rng, rare_prob=0.0)
+        _, plain = renderer.render(pose, camera.T_vehicle_camera, 0.0)
+        _, aux = renderer.render(pose, camera.T_vehicle_camera, 0.0, curb_label=CURB_AUX)
+        curb = aux == CURB_AUX
+        assert (plain[curb] == 0).all() and np.array_equal(plain[~curb], aux[~curb])
+        assert CURB_AUX not in plain
+        # a curb borders the road: every connected piece of curb touches road pixels
+        n, pieces = cv2.connectedComponents(curb.astype(np.uint8))
+        near_road = cv2.dilate((plain >= Cls.ROAD).astype(np.uint8), np.ones((3, 3), np.uint8))
+        assert set(np.unique(pieces[curb & (near_road > 0)])) == set(range(1, n))
+        seen += int(curb.sum())
+    assert seen > 500
+
+
+def test_synth_frames_label_curbs_only_in_looks_that_draw_them():
+    from services.segtrain.data import CURB_AUX
+    from services.segtrain.synth import render_town_frames
+
+    world = load_world("town:0.6", 4)
+    frames = list(render_town_frames(world, 2, 4, np.random.default_rng(0), supersample=1,
+                                     curb_label=CURB_AUX))
+    with_curb = [lab for _, lab in frames if (lab == CURB_AUX).any()]
+    assert 0 < len(with_curb) and all(lab.max() <= CURB_AUX for _, lab in frames)
+    plain = list(render_town_frames(world, 2, 4, np.random.default_rng(0), supersample=1))
+    assert all(lab.max() < CURB_AUX for _, lab in plain)
+
+
+def test_turned_training_poses_keep_the_position_and_the_benchmark_poses_are_unchanged():
+    """Training turns a share of poses 15-90 deg off the route; the held-out benchmark (turn
+    probability 0) draws exactly the poses it drew before."""
+    import math
+
+    from services.segtrain.synth import _route_pose, random_pose
+
+    world = load_world("town:0.6", 2)
+    for seed in range(5):
+        base = _route_pose(world, np.random.default_rng(seed), 0.3)
+        assert random_pose(world, np.random.default_rng(seed), 0.3) == base
+        turned = random_pose(world, np.random.default_rng(seed), 0.3, turn_prob=1.0)
+        assert turned[:2] == base[:2]
+        off = abs(math.remainder(turned[2] - base[2], 2 * math.pi))
+        assert math.radians(15) <= off <= math.radians(90)
