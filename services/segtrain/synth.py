@@ -13,8 +13,9 @@ import cv2
 import numpy as np
 
 from common.camera import CameraModel
-from common.classes import NUM_CLASSES, Cls
+from common.classes import Cls
 from common.geometry import rot_z
+from services.segtrain.data import resize_labels
 
 CELL_M = 0.05
 SUPER = 2
@@ -146,14 +147,8 @@ def render(raster: WorldRaster, ground: GroundMap, pose, rng, curb_label=None):
     labels = labels.reshape(h * k, w * k).astype(np.uint8)
     if k > 1:
         rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-        labels = _downsample_labels(labels, (w, h), max(NUM_CLASSES, curb + 1))
+        labels = resize_labels(labels, (w, h))
     return _camera_effects(rgb, style, rng), labels
-
-
-def _downsample_labels(lab, size, n_classes=NUM_CLASSES):
-    cover = np.stack([cv2.resize((lab == c).astype(np.float32), size, interpolation=cv2.INTER_AREA)
-                      for c in range(n_classes)])
-    return cover.argmax(0).astype(np.uint8)
 
 
 def _style(rng) -> dict:

@@ -167,7 +167,8 @@ def calibrate_bias(model, x_u8, y, rounds: int = 2) -> list[float]:
              if bool((y == c).any())]
     top2 = logits.topk(2, dim=1).values
     open_ = (top2[:, 0] - top2[:, 1]) <= float(BIAS_GRID.max() - BIAS_GRID.min())
-    fixed_pred = torch.where(logits.argmax(1) >= NUM_CLASSES, 0, logits.argmax(1))[~open_]
+    pred0 = logits.argmax(1)
+    fixed_pred = torch.where(pred0 >= NUM_CLASSES, 0, pred0)[~open_]
     fixed_y = y[~open_]
     fixed = {c: (int(((fixed_pred == c) & (fixed_y == c)).sum()),
                  int(((fixed_pred == c) | (fixed_y == c)).sum())) for c in paint}
