@@ -129,7 +129,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="torch device: cpu (2 threads) or cuda")
     p.add_argument("--batch", type=int, default=8, help="crops per training step")
     p.add_argument("--init", default=None,
-                   help="fine-tune from this exported RoadSegNet ONNX file (same widths)")
+                   help="fine-tune from a trained model: an exported RoadSegNet ONNX file (the "
+                        "default architecture) or the roadseg.pt a run writes beside it (any)")
+    p.add_argument("--arch", default="s", choices=["s", "m", "m-norows"],
+                   help="network size (services/segtrain/net.py ARCHS; default s)")
+    p.add_argument("--stream", action="store_true",
+                   help="train while --workers processes render (GPU runs: training starts after "
+                        "the first 480 frames; --render-minutes is not used)")
+    p.add_argument("--render-only", action="store_true",
+                   help="render the training frames into the cache and stop (several training "
+                        "runs with the same rendering settings then share them)")
+    p.add_argument("--iou-loss", type=float, default=0.0,
+                   help="weight of a soft-Jaccard term (paint and curb classes) added to the "
+                        "cross-entropy (default 0: cross-entropy alone)")
     _common(p)
 
     p = sub.add_parser("dump-config", help="print the effective configuration as TOML")

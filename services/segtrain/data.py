@@ -100,6 +100,103 @@ def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
     return frames, labels
 
 
+class FrameStream:
+    """Training frames rendered by `workers` processes while the model trains (a GPU would
+    otherwise wait minutes for its frames, and train on fewer). Worker i renders chunks
+    k = i, i + workers, ... ((seed, k) as in training_set) into files of a private folder;
+    `take()` hands over the chunks that arrived since the last call, in k order. Files, not
+    pipes: stopping the workers (SIGKILL) can never hang on a half-sent chunk, and the workers
+    run single-threaded at low priority so the training process keeps its core. What a run has
+    seen when it stops depends on the render speed, so a streamed run is reproducible in its
+    recipe, not bit for bit."""
+
+    def __init__(self, *, seed: int, input_size: tuple[int, int], max_frames: int, workers: int):
+        import multiprocessing
+
+        self._dir = Path(tempfile.mkdtemp(prefix="roadmap-stream-"))
+        self._n_chunks = -(-max_frames // CHUNK_FRAMES)
+        self._next = 0
+        self.frames = 0
+        ctx = multiprocessing.get_context("spawn")
+        sim = _sim_available()
+        self._procs = [ctx.Process(target=_stream_worker, daemon=True,
+                                   args=(self._dir, seed, i, workers, self._n_chunks,
+                                         tuple(input_size), sim))
+                       for i in range(workers)]
+        for proc in self._procs:
+            proc.start()
+
+    def wait(self, n_frames: int, timeout_s: float):
+        """Block until n_frames have arrived (or all chunks, or timeout_s) -> take()."""
+        deadline = time.monotonic() + timeout_s
+        got = []
+        while True:
+            if (part := self.take()) is not None:
+                got.append(part)
+            if (self.frames >= n_frames or self._next >= self._n_chunks
+                    or time.monotonic() > deadline):
+                break
+            if not any(proc.is_alive() for proc in self._procs):
+                if (part := self.take()) is None:  # (a chunk may have landed since)
+                    codes = [proc.exitcode for proc in self._procs]
+                    raise RuntimeError(f"the render workers exited (codes {codes}) after "
+                                       f"{self.frames} frames")
+                got.append(part)
+                continue
+            time.sleep(0.2)
+        if not got:
+            raise RuntimeError(f"no training frames rendered in {timeout_s:.0f} s")
+        return np.concatenate([f for f, _ in got]), np.concatenate([lab for _, lab in got])
+
+    def take(self):
+        """(frames, labels) of the chunks arrived since the last call, or None."""
+        chunks = []
+        while self._next < self._n_chunks:
+            path = self._dir / f"{self._next}.npz"
+            if not path.is_file():
+                if (self._dir / f"{self._next}.err").is_file():
+                    raise RuntimeError(f"rendering chunk {self._next} failed: "
+                                       + (self._dir / f"{self._next}.err").read_text())
+                break
+            with np.load(path) as z:
+                chunks.append((z["frames"], z["labels"]))
+            path.unlink()
+            self._next += 1
+        if not chunks:
+            return None
+        self.frames += sum(len(f) for f, _ in chunks)
+        return np.concatenate([f for f, _ in chunks]), np.concatenate([lab for _, lab in chunks])
+
+    def close(self):
+        import shutil
+
+        for proc in self._procs:
+            proc.kill()
+        for proc in self._procs:
+            proc.join(timeout=10)
+        shutil.rmtree(self._dir, ignore_errors=True)
+
+
+def _stream_worker(folder: Path, seed: int, index: int, workers: int, n_chunks: int,
+                   input_size, sim: bool):
+    import os
+    import traceback
+
+    os.nice(10)
+    cv2.setNumThreads(1)
+    for k in range(index, n_chunks, workers):
+        while len(list(folder.glob("*.npz"))) > 4 * workers:  # the trainer is behind: wait
+            time.sleep(0.5)
+        try:
+            frames, labels = _render_chunk((seed, k, input_size, sim))
+        except Exception:
+            (folder / f"{k}.err").write_text(traceback.format_exc())
+            return
+        tmp = folder / f"{k}.tmp.npz"
+        np.savez(tmp, frames=frames, labels=labels)
+        tmp.rename(folder / f"{k}.npz")
+
+
 def _render_chunk(job):
     """CHUNK_FRAMES (frames, labels) of chunk k: one town, synth.py or the simulator."""
     seed, k, input_size, sim = job

@@ -28,7 +28,6 @@ LR_MAX = 6e-3
 LR_FINETUNE = 2e-3  # peak learning rate when starting from a trained model (--init)
 THREADS = 2
 TRIM_EVERY = 50  # steps between heap trims (_heap_trimmer)
-WIDTHS = (12, 20, 40, 64)  # RoadSegNet channels at 1/2, 1/4, 1/8, 1/16 (speed: 1/2 dominates)
 
 
 def train_command(args, cfg) -> int:
@@ -36,23 +35,69 @@ def train_command(args, cfg) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     minutes = float(args.minutes)
+    if args.stream:
+        return _train_streamed(args, out, t_start)
     render_budget_s = (min(0.2 * minutes * 60.0, 10 * 60.0) if args.render_minutes is None
                        else 60.0 * args.render_minutes)
     frames, labels = seg_data.training_set(seed=args.seed, input_size=INPUT_SIZE,
                                            budget_s=render_budget_s, max_frames=args.frames,
                                            workers=args.workers, cache=not args.no_cache)
     render_s = time.perf_counter() - t_start
-    train_s = max(minutes * 60.0 - render_s - 60.0, 60.0)
+    if args.render_only:
+        logger.info("%d training frames rendered in %.0f s (cached)", len(frames), render_s)
+        return 0
+    # the training time does not depend on whether the frames came from the cache: a rerun
+    # with a warm cache trains exactly as long as the first run did
+    train_s = max(minutes * 60.0 - max(render_s, render_budget_s) - 60.0, 60.0)
     result = train_and_export(frames, labels, out, seed=args.seed, train_s=train_s,
-                              device=args.device, batch=args.batch, init=args.init)
+                              device=args.device, batch=args.batch, init=args.init,
+                              iou_loss=args.iou_loss, arch=args.arch)
     result["render_s"] = round(render_s, 1)
+    return _finish(args, out, result, t_start)
+
+
+# Streamed training (--stream): training starts once STREAM_START_FRAMES have arrived, the
+# first STREAM_VAL_FRAMES of them (10 chunks: 3 synth.py, 7 simulator) held out.
+STREAM_START_FRAMES = 480
+STREAM_VAL_FRAMES = 240
+
+
+def _train_streamed(args, out: Path, t_start: float) -> int:
+    import os
+
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = "1"  # for the render workers (spawned: they read it at import)
+    stream = seg_data.FrameStream(seed=args.seed, input_size=INPUT_SIZE,
+                                  max_frames=args.frames, workers=args.workers)
+    try:
+        frames, labels = stream.wait(min(STREAM_START_FRAMES, args.frames), timeout_s=30 * 60.0)
+        render_s = time.perf_counter() - t_start
+        logger.info("%d frames after %.0f s; training while %d processes render on",
+                    len(frames), render_s, args.workers)
+        train_s = max(float(args.minutes) * 60.0 - render_s - 60.0, 60.0)
+        result = train_and_export(frames, labels, out, seed=args.seed, train_s=train_s,
+                                  device=args.device, batch=args.batch, init=args.init,
+                                  iou_loss=args.iou_loss, arch=args.arch, more=stream.take,
+                                  capacity=args.frames)
+    finally:
+        stream.close()
+    result["render_s"] = round(render_s, 1)
+    result["stream"] = True
+    return _finish(args, out, result, t_start)
+
+
+def _finish(args, out: Path, result: dict, t_start: float) -> int:
+    minutes = float(args.minutes)
     result["minutes"] = minutes
     result["command"] = " ".join(
         ["roadmap train-seg --out DIR", f"--seed {args.seed}", f"--minutes {minutes:g}",
          f"--frames {args.frames}", f"--workers {args.workers}"]
         + ([f"--render-minutes {args.render_minutes:g}"] if args.render_minutes else [])
+        + (["--stream"] if args.stream else [])
         + [f"--device {args.device}", f"--batch {args.batch}"]
-        + ([f"--init {args.init}"] if args.init else []))
+        + ([f"--arch {args.arch}"] if args.arch != "s" else [])
+        + ([f"--init {args.init}"] if args.init else [])
+        + ([f"--iou-loss {args.iou_loss:g}"] if args.iou_loss else []))
     result["total_s"] = round(time.perf_counter() - t_start, 1)
     (out / "train_log.json").write_text(json.dumps(result, indent=2))
     (out / "MODEL_CARD.md").write_text(model_card(result))
@@ -70,15 +115,19 @@ def class_weights(labels: np.ndarray) -> np.ndarray:
 
 
 def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
-                     device: str = "cpu", batch: int = BATCH, init: str | None = None) -> dict:
-    """Train for train_s seconds on `device` (cpu: 2 threads; cuda: the frames live on the GPU),
-    from scratch or, with `init`, from an exported model (fine-tuning at LR_FINETUNE with batch
-    norms frozen); export to ONNX (on the CPU, auxiliary classes folded into none) and check
+                     device: str = "cpu", batch: int = BATCH, init: str | None = None,
+                     iou_loss: float = 0.0, arch: str = "s", more=None,
+                     capacity: int = 0) -> dict:
+    """Train RoadSegNet of size `arch` (net.ARCHS) for train_s seconds on `device` (cpu: 2
+    threads; cuda: the frames live on the GPU), from scratch or, with `init`, from a trained
+    model (fine-tuning at LR_FINETUNE; an exported ONNX file's folded batch norms are kept
+    frozen), on class-weighted cross-entropy plus `iou_loss` x soft_jaccard_loss; with `more`
+    (FrameStream.take) frames keep arriving while it trains, up to `capacity` in all;
+    export to ONNX (on the CPU, auxiliary classes folded into none) and check
     the export."""
     import torch
 
-    from services.segtrain.net import (RoadSegNet, count_parameters, freeze_batch_norm,
-                                       load_onnx_weights)
+    from services.segtrain.net import ARCHS, RoadSegNet, count_parameters, freeze_batch_norm
 
     torch.manual_seed(seed)
     torch.set_num_threads(THREADS)
@@ -86,13 +135,16 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
     torch.backends.cudnn.benchmark = True
     dev = torch.device(device)
     rng = np.random.default_rng(seed)
-    n_val = max(len(frames) // 20, 4)
-    x_all = torch.from_numpy(frames).permute(0, 3, 1, 2).contiguous().to(dev)  # uint8 NCHW
-    y_all = torch.from_numpy(labels).to(dev)  # uint8; int64 per batch (saves GBs)
+    n_val = (max(len(frames) // 20, 4) if more is None
+             else min(STREAM_VAL_FRAMES, len(frames) // 2))
+    n_loaded, cap = len(frames), max(capacity, len(frames)) if more is not None else len(frames)
+    x_all = torch.empty((cap, 3) + frames.shape[1:3], dtype=torch.uint8, device=dev)  # NCHW
+    y_all = torch.empty((cap,) + labels.shape[1:], dtype=torch.uint8, device=dev)  # int64/batch
+    x_all[:n_loaded] = torch.from_numpy(frames).to(dev).permute(0, 3, 1, 2)
+    y_all[:n_loaded] = torch.from_numpy(labels).to(dev)
     weights = class_weights(labels[n_val:])
-    model = RoadSegNet(widths=WIDTHS, num_classes=seg_data.TRAIN_CLASSES)
-    if init:
-        load_onnx_weights(model, init)
+    model = RoadSegNet(num_classes=seg_data.TRAIN_CLASSES, **ARCHS[arch])
+    frozen_norms = _load_init(model, init) if init else False
     model = model.to(dev)
     lr_max = LR_FINETUNE if init else LR_MAX
     opt = torch.optim.AdamW(model.parameters(), lr=lr_max, weight_decay=1e-4)
@@ -102,17 +154,26 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
                 count_parameters(model), len(frames) - n_val, n_val, np.round(weights, 2),
                 f", from {init}" if init else "")
     model.train()
-    if init:
+    if frozen_norms:
         freeze_batch_norm(model)
     t0, step, losses = time.perf_counter(), 0, []
     while (elapsed := time.perf_counter() - t0) < train_s:
         frac = elapsed / train_s
         for g in opt.param_groups:
             g["lr"] = _lr(frac, lr_max)
-        idx = torch.from_numpy(rng.integers(n_val, len(frames), batch)).to(dev)
-        xb, yb = _crop_batch(x_all[idx], y_all[idx], rng)
+        if more is not None and step % 20 == 0 and n_loaded < cap and (got := more()):
+            k = min(len(got[0]), cap - n_loaded)
+            x_all[n_loaded:n_loaded + k] = torch.from_numpy(got[0][:k]).to(dev).permute(0, 3, 1, 2)
+            y_all[n_loaded:n_loaded + k] = torch.from_numpy(got[1][:k]).to(dev)
+            n_loaded += k
+        idx = torch.from_numpy(rng.integers(n_val, n_loaded, batch)).to(dev)
+        xb, yb, top = _crop_batch(x_all[idx], y_all[idx], rng)
+        model.crop_rows = (top, x_all.shape[2])
         xb, yb = augment(xb, yb.long(), rng)
-        loss = loss_fn(model(xb), yb)
+        logits = model(xb)
+        loss = loss_fn(logits, yb)
+        if iou_loss:
+            loss = loss + iou_loss * soft_jaccard_loss(logits, yb)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -121,27 +182,74 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
         if step % TRIM_EVERY == 0:
             trim_heap()
         if step % 100 == 0:
-            logger.info("step %d  %.0f s  lr %.4f  loss %.4f", step, elapsed, _lr(frac, lr_max),
-                        _mean_loss(losses))
+            logger.info("step %d  %.0f s  lr %.4f  loss %.4f  frames %d", step, elapsed,
+                        _lr(frac, lr_max), _mean_loss(losses), n_loaded)
     model.eval()
+    model.crop_rows = None  # whole frames from here on
     n_cal = n_val // 2  # validation frames: the first half sets the logit offsets
     bias = calibrate_bias(model, x_all[:n_cal], y_all[:n_cal])
     model.export_classes = NUM_CLASSES  # auxiliary classes folded into none from here on
     val_iou = _validate(model, x_all[n_cal:n_val], y_all[n_cal:n_val])  # the second half
     logger.info("validation IoU (procedural towns, held out): %s", val_iou)
     model, x_all = model.cpu(), x_all[:4].cpu()
+    del y_all
     model_path = out / "roadseg.onnx"
-    torch.save(model.state_dict(), out / "roadseg.pt")  # for fine-tuning; not packaged
+    # for fine-tuning (--init); not packaged. Saved with the logit offsets in the head's bias.
+    torch.save({"arch": model.arch, "state": model.state_dict()}, out / "roadseg.pt")
     export_onnx(model, model_path, seed=seed)
     max_diff, agree = verify_onnx(model, model_path, x_all[:4])
     return {
-        "steps": step, "train_s": round(time.perf_counter() - t0, 1), "frames": len(frames),
+        "steps": step, "train_s": round(time.perf_counter() - t0, 1), "frames": n_loaded,
         "params": count_parameters(model), "class_weights": np.round(weights, 3).tolist(),
         "final_loss": _mean_loss(losses) if losses else None,
         "val_iou_town": val_iou, "onnx_max_abs_diff": max_diff, "onnx_argmax_agreement": agree,
         "model_bytes": model_path.stat().st_size, "seed": seed, "device": device,
         "batch": batch, "init": init, "lr_max": lr_max, "logit_bias": bias,
+        "iou_loss_weight": iou_loss, "arch": arch,
     }
+
+
+def _load_init(model, init: str) -> bool:
+    """Weights from a trained model: roadseg.pt (same architecture; batch norms as trained) or
+    an exported ONNX file (batch norms folded: kept frozen). -> whether norms must stay frozen."""
+    import torch
+
+    from services.segtrain.net import load_onnx_weights
+
+    if str(init).endswith(".onnx"):
+        load_onnx_weights(model, init)
+        return True
+    saved = torch.load(init, map_location="cpu")
+    if saved["arch"] != model.arch:
+        raise ValueError(f"{init}: architecture {saved['arch']}, the model is {model.arch}")
+    state = saved["state"]
+    head_w = model.head.weight.shape[0]
+    if state["head.weight"].shape[0] < head_w:  # auxiliary classes start as copies of none
+        extra = head_w - state["head.weight"].shape[0]
+        for key in ("head.weight", "head.bias"):
+            state[key] = torch.cat([state[key], state[key][:1].repeat_interleave(extra, 0)])
+    model.load_state_dict(state)
+    return False
+
+
+PAINT = (Cls.LANE_LINE, Cls.STOP_LINE, Cls.CROSSWALK, Cls.GROUND_SIGN)
+IOU_CLASSES = PAINT + (seg_data.CURB_AUX,)  # the curb too: a light curb looks like an edge line
+
+
+def soft_jaccard_loss(logits, y):
+    """1 - soft IoU (softmax probabilities against one-hot truth, summed over the batch),
+    averaged over the IOU_CLASSES present in the batch. Cross-entropy scores every pixel on
+    its own; thin paint's IoU is lost at its borders (a line fattened by one pixel at 20 m has
+    half again its true area), which this term prices the way the benchmark does."""
+    import torch
+
+    prob = torch.softmax(logits, 1)[:, list(IOU_CLASSES)]  # (N, K, H, W)
+    truth = torch.stack([y == c for c in IOU_CLASSES], 1).to(prob.dtype)
+    inter = (prob * truth).sum((0, 2, 3))
+    t_sum = truth.sum((0, 2, 3))
+    iou = inter / (prob.sum((0, 2, 3)) + t_sum - inter + 1.0)
+    present = (t_sum > 0).to(prob.dtype)  # absent classes: no term (no device sync)
+    return ((1.0 - iou) * present).sum() / present.sum().clamp(min=1.0)
 
 
 CALIBRATE_FRAMES = 128
@@ -237,13 +345,14 @@ def _lr(frac: float, peak: float = LR_MAX) -> float:
 
 def _crop_batch(x, y, rng):
     """Random crops (H, W) = CROP_HW; same window for the whole batch (cheap, still varied).
-    Mostly from the lower part of the frame (the road; the sky is easy), sometimes anywhere."""
+    Mostly from the lower part of the frame (the road; the sky is easy), sometimes anywhere.
+    -> (images, labels, the crop's top row in the frame)."""
     h, w = CROP_HW
     span = x.shape[2] - h
     lo = 0 if rng.random() < 0.3 else span // 2
     top = int(rng.integers(lo, span + 1))
     left = int(rng.integers(0, x.shape[3] - w + 1))
-    return x[:, :, top:top + h, left:left + w], y[:, top:top + h, left:left + w]
+    return x[:, :, top:top + h, left:left + w], y[:, top:top + h, left:left + w], top
 
 
 def augment(x_u8, y, rng):
@@ -301,18 +410,20 @@ def _validate(model, x_u8, y) -> dict:
 
 
 def export_onnx(model, path: Path, *, seed: int) -> None:
-    """Fixed input (1, 3, H, W) float RGB / 255; output `logits` (1, 6, H, W); self-describing
-    metadata under `roadmap.segmentation` (read by OnnxSegmenter)."""
+    """Fixed input (1, 3, H, W) float RGB / 255; output `logits` (1, 6, H/2, W/2), which
+    OnnxSegmenter upsamples bilinearly to (H, W) before its argmax; self-describing metadata
+    under `roadmap.segmentation` (read by OnnxSegmenter)."""
     import onnx
     import torch
 
     w, h = INPUT_SIZE
+    model.half_res_logits = True  # the runtime upsamples (OnnxSegmenter.segment_model_size)
     dummy = torch.rand(1, 3, h, w)
     torch.onnx.export(model, (dummy,), str(path), input_names=["image"],
                       output_names=["logits"], opset_version=17, dynamo=False,
                       do_constant_folding=True)
     proto = onnx.load(str(path))
-    meta = {"name": "roadseg", "input_size": [w, h], "scale": 1.0 / 255.0,
+    meta = {"name": "roadseg", "arch": model.arch, "input_size": [w, h], "scale": 1.0 / 255.0,
             "mean": [0.0, 0.0, 0.0], "std": [1.0, 1.0, 1.0],
             "classes": [NAMES[c] for c in Cls], "seed": seed}
     entry = proto.metadata_props.add()
@@ -352,12 +463,14 @@ def model_card(result: dict) -> str:
 - **Input** `image`: float32 [1, 3, {h}, {w}] (N, C, H, W), RGB, value = pixel / 255
   (no mean/std: mean 0, std 1). {w}x{h} is the camera's own size: frames of the default
   camera go in unresized (other sizes are resized with cv2.INTER_AREA).
-- **Output** `logits`: float32 [1, 6, {h}, {w}]; class = argmax over axis 1. OnnxSegmenter
-  resizes the labels back to the frame size (nearest). The same settings are stored in the
-  model's metadata (`roadmap.segmentation`), so `OnnxSegmenter()` needs no arguments.
+- **Output** `logits`: float32 [1, 6, {h // 2}, {w // 2}] (1/2 of the input); OnnxSegmenter
+  upsamples them bilinearly to {w}x{h} (half-pixel centres, as torch's align_corners=False)
+  and takes the argmax over axis 1, then resizes the labels to the frame size (nearest). The
+  same settings are stored in the model's metadata (`roadmap.segmentation`), so
+  `OnnxSegmenter()` needs no arguments.
 - **Network**: RoadSegNet (services/segtrain/net.py): 4x4 stride-2 stem on the full-resolution
   image, depthwise-separable encoder-decoder with stages at 1/4, 1/8, 1/16 (dilated context),
-  U-Net skips back to 1/2, logits upsampled bilinearly to the input size;
+  U-Net skips back to 1/2, logits at 1/2 (upsampled by the runtime);
   {result["params"]} parameters, {result["model_bytes"] / 1024:.0f} KiB, ONNX opset 17.
 - **Training data**: only seeded procedural towns (services/sim/town.py), never the Karlsruhe or
   Argoverse 2 benchmark worlds: {result["frames"]} frames in chunks of one town each (seeded by
@@ -377,11 +490,12 @@ def model_card(result: dict) -> str:
   of none and curb logits at 1/2 resolution), so the model's outputs are our 6 classes. A light
   curb looks like an edge line: labelled none, it held most lane-line false positives.
 - **Training**: `{result.get("command", "roadmap train-seg")}`
-  (`pip install .[train]`){_init_text(result)}, RoadSegNet widths {list(WIDTHS)}, AdamW,
+  (`pip install .[train]`){_init_text(result)}, RoadSegNet {_arch_text(result)}, AdamW,
   cosine schedule (peak learning rate {result.get("lr_max", LR_MAX):g}),
-  class-weighted cross-entropy (weights {result["class_weights"]}), device
+  class-weighted cross-entropy (weights {result["class_weights"]}){_iou_text(result)}, device
   `{result.get("device", "cpu")}`, batch {result.get("batch", BATCH)}; {result["steps"]} steps in
-  {result["train_s"] / 60:.1f} min after {result.get("render_s", 0) / 60:.1f} min of rendering.
+  {result["train_s"] / 60:.1f} min after {result.get("render_s", 0) / 60:.1f} min of rendering{
+    " (the first frames; rendering went on while it trained)" if result.get("stream") else ""}.
   The export is checked against torch with onnxruntime
   (max |diff| {result["onnx_max_abs_diff"]:.1e},
   argmax agreement {result["onnx_argmax_agreement"]:.4f}).
@@ -392,6 +506,20 @@ def model_card(result: dict) -> str:
   {result["val_iou_town"]}.
 - **Held-out benchmark worlds**: see the metrics section below (bench/bench_segmentation.py).
 """
+
+
+def _arch_text(result: dict) -> str:
+    from services.segtrain.net import ARCHS
+
+    a = ARCHS[result.get("arch", "s")]
+    rows = ", row embedding at 1/8 and 1/16" if a["rows"] else ""
+    return (f"`{result.get('arch', 's')}` (widths {a['widths']} at 1/2..1/16, blocks "
+            f"{a['depths']} at 1/4, 1/8, 1/16{rows})")
+
+
+def _iou_text(result: dict) -> str:
+    w = result.get("iou_loss_weight")
+    return f" plus {w:g} x soft-Jaccard loss on the paint and curb classes" if w else ""
 
 
 def _init_text(result: dict) -> str:

@@ -117,3 +117,24 @@ def test_turned_training_poses_keep_the_position_and_the_benchmark_poses_are_unc
         assert turned[:2] == base[:2]
         off = abs(math.remainder(turned[2] - base[2], 2 * math.pi))
         assert math.radians(15) <= off <= math.radians(90)
+
+
+def test_streamed_chunks_are_the_training_set_in_order_and_stopping_leaves_nothing():
+    """FrameStream (GPU runs: frames rendered while the model trains) hands over chunk k =
+    (seed, k) in order, the same frames training_set renders, whatever its worker count;
+    close() kills the workers and removes their folder."""
+    from services.segtrain.data import CHUNK_FRAMES, FrameStream, training_set
+
+    size = (160, 96)
+    want_f, want_l = training_set(seed=3, input_size=size, budget_s=1e9,
+                                  max_frames=2 * CHUNK_FRAMES, cache=False)
+    order = np.argsort(np.random.default_rng(3).permutation(len(want_f)))  # undo its shuffle
+    stream = FrameStream(seed=3, input_size=size, max_frames=2 * CHUNK_FRAMES, workers=2)
+    try:
+        got_f, got_l = stream.wait(2 * CHUNK_FRAMES, timeout_s=300)
+        assert stream.take() is None  # nothing more to come
+    finally:
+        stream.close()
+    assert np.array_equal(got_f, want_f[order]) and np.array_equal(got_l, want_l[order])
+    assert not stream._dir.exists()
+    assert not any(proc.is_alive() for proc in stream._procs)

@@ -1,0 +1,48 @@
+"""The training loss's soft-Jaccard term (needs the optional torch extra: `pip install .[train]`)."""
+
+import pytest
+
+from common.classes import Cls
+
+torch = pytest.importorskip("torch", reason="training tests need the .[train] extra (torch)")
+
+from services.segtrain.train import soft_jaccard_loss  # noqa: E402
+
+CLASSES = 7  # ours + the curb training class
+
+
+def _confident(labels):
+    """Logits that put all probability on `labels`."""
+    return torch.nn.functional.one_hot(labels, CLASSES).permute(0, 3, 1, 2).float() * 40.0 - 20.0
+
+
+def _line_frame():
+    y = torch.full((1, 32, 32), int(Cls.ROAD))
+    y[:, :, 15:17] = int(Cls.LANE_LINE)
+    return y
+
+
+def test_perfect_prediction_costs_almost_nothing_and_a_fattened_line_costs_its_iou():
+    y = _line_frame()
+    assert soft_jaccard_loss(_confident(y), y) < 0.02
+    fat = y.clone()
+    fat[:, :, 14:18] = int(Cls.LANE_LINE)  # predicted 4 px wide, true 2 px: IoU 0.5
+    assert soft_jaccard_loss(_confident(fat), y) == pytest.approx(0.5, abs=0.02)
+
+
+def test_classes_absent_from_the_truth_add_no_term():
+    y = torch.full((1, 16, 16), int(Cls.ROAD))
+    logits = torch.randn(1, CLASSES, 16, 16, requires_grad=True)
+    loss = soft_jaccard_loss(logits, y)
+    assert float(loss.detach()) == 0.0
+    loss.backward()  # still a graph: a batch without paint trains on cross-entropy alone
+    assert float(logits.grad.abs().sum()) == 0.0
+
+
+def test_gradient_raises_the_missed_class_and_lowers_the_false_one():
+    y = _line_frame()
+    logits = torch.zeros(1, CLASSES, 32, 32, requires_grad=True)
+    soft_jaccard_loss(logits, y).backward()
+    g = logits.grad[0]
+    assert float(g[Cls.LANE_LINE, 0, 15]) < 0.0  # descent raises lane line on the line
+    assert float(g[Cls.LANE_LINE, 0, 0]) > 0.0  # and lowers it off the line

@@ -1,0 +1,73 @@
+"""RoadSegNet's row embedding, its half-resolution export and fine-tuning from a saved run
+(needs the optional torch extra: `pip install .[train]`)."""
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch", reason="training tests need the .[train] extra (torch)")
+
+from common.classes import NUM_CLASSES  # noqa: E402
+from common.segmentation import OnnxSegmenter  # noqa: E402
+from services.segtrain import train  # noqa: E402
+from services.segtrain.data import TRAIN_CLASSES  # noqa: E402
+from services.segtrain.net import ARCHS, RoadSegNet, _row_features  # noqa: E402
+
+
+def test_a_crop_sees_the_row_features_of_its_place_in_the_frame():
+    frame = torch.zeros(1, 8, 360 // 8, 4)
+    crop = torch.zeros(1, 8, 224 // 8, 4)
+    top = 96  # a multiple of 16, as the training crops' feature rows line up with the frame's
+    whole = _row_features(frame, 8, 0, 360)
+    assert torch.allclose(_row_features(crop, 8, top, 360), whole[:, :, top // 8:top // 8 + 28])
+    r = whole[0, 0, :, 0]
+    assert -1.0 < float(r[0]) < -0.9 and 0.9 < float(r[-1]) < 1.0  # top .. bottom of the frame
+
+
+def test_the_row_embedding_changes_the_output_with_the_crop_position():
+    torch.manual_seed(0)
+    model = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["m"]).eval()
+    torch.nn.init.normal_(model.rows3.weight, std=1.0)
+    x = torch.rand(1, 3, 64, 128)
+    with torch.no_grad():
+        model.crop_rows = (0, 360)
+        high = model(x)
+        model.crop_rows = (288, 360)
+        low = model(x)
+    assert not torch.allclose(high, low)
+    flat = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]).eval()
+    with torch.no_grad():
+        flat.crop_rows = (0, 360)
+        a = flat(x)
+        flat.crop_rows = (288, 360)
+        assert torch.equal(a, flat(x))  # no rows: position-blind, as before
+
+
+def test_half_resolution_export_gives_the_labels_of_the_full_resolution_logits(tmp_path, rng):
+    """The graph ends at 1/2 resolution; OnnxSegmenter's bilinear upsampling before its argmax
+    gives the labels torch's in-graph upsampling gives."""
+    torch.manual_seed(1)
+    model = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["m"]).eval()
+    model.export_classes = NUM_CLASSES
+    image = rng.integers(0, 255, (360, 640, 3), dtype=np.uint8)
+    with torch.no_grad():
+        ref = model(torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255.0)
+    path = tmp_path / "m.onnx"
+    train.export_onnx(model, path, seed=1)
+    seg = OnnxSegmenter(path)
+    assert seg._session.get_outputs()[0].shape == [1, NUM_CLASSES, 180, 320]
+    labels = seg.segment(image)
+    assert labels.shape == (360, 640)
+    assert (labels == ref[0].argmax(0).numpy()).mean() > 0.999
+
+
+def test_fine_tuning_starts_from_a_saved_run_of_the_same_architecture(tmp_path):
+    torch.manual_seed(2)
+    saved = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["m"])
+    path = tmp_path / "roadseg.pt"
+    torch.save({"arch": saved.arch, "state": saved.state_dict()}, path)
+    model = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["m"])
+    assert train._load_init(model, str(path)) is False  # batch norms as trained: not frozen
+    assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(),
+                                                 saved.state_dict().values(), strict=True))
+    with pytest.raises(ValueError, match="architecture"):
+        train._load_init(RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]), str(path))
