@@ -129,27 +129,31 @@ class FrameStream:
     def wait(self, n_frames: int, timeout_s: float):
         """Block until n_frames have arrived (or all chunks, or timeout_s) -> take()."""
         deadline = time.monotonic() + timeout_s
-        got = []
+        chunks = []
         while True:
-            if (part := self.take()) is not None:
-                got.append(part)
+            chunks += self._arrived()
             if (self.frames >= n_frames or self._next >= self._n_chunks
                     or time.monotonic() > deadline):
                 break
             if not any(proc.is_alive() for proc in self._procs):
-                if (part := self.take()) is None:  # (a chunk may have landed since)
+                if not (landed := self._arrived()):  # (a chunk may have landed since)
                     codes = [proc.exitcode for proc in self._procs]
                     raise RuntimeError(f"the render workers exited (codes {codes}) after "
                                        f"{self.frames} frames")
-                got.append(part)
+                chunks += landed
                 continue
             time.sleep(0.2)
-        if not got:
+        if not chunks:
             raise RuntimeError(f"no training frames rendered in {timeout_s:.0f} s")
-        return np.concatenate([f for f, _ in got]), np.concatenate([lab for _, lab in got])
+        return _stack(chunks)
 
     def take(self):
         """(frames, labels) of the chunks arrived since the last call, or None."""
+        chunks = self._arrived()
+        return _stack(chunks) if chunks else None
+
+    def _arrived(self) -> list:
+        """[(frames, labels)] of the chunks that landed since the last call, in k order."""
         chunks = []
         while self._next < self._n_chunks:
             path = self._dir / f"{self._next}.npz"
@@ -162,10 +166,8 @@ class FrameStream:
                 chunks.append((z["frames"], z["labels"]))
             path.unlink()
             self._next += 1
-        if not chunks:
-            return None
         self.frames += sum(len(f) for f, _ in chunks)
-        return np.concatenate([f for f, _ in chunks]), np.concatenate([lab for _, lab in chunks])
+        return chunks
 
     def close(self):
         import shutil
@@ -175,6 +177,10 @@ class FrameStream:
         for proc in self._procs:
             proc.join(timeout=10)
         shutil.rmtree(self._dir, ignore_errors=True)
+
+
+def _stack(chunks: list):
+    return np.concatenate([f for f, _ in chunks]), np.concatenate([lab for _, lab in chunks])
 
 
 def _stream_worker(folder: Path, seed: int, index: int, workers: int, n_chunks: int,

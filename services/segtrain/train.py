@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common.classes import NAMES, NUM_CLASSES, Cls
+from common.classes import MARKINGS, NAMES, NUM_CLASSES, Cls
 from common.segmentation import META_KEY
 from services.segtrain import data as seg_data
 
@@ -232,8 +232,8 @@ def _load_init(model, init: str) -> bool:
     return False
 
 
-PAINT = (Cls.LANE_LINE, Cls.STOP_LINE, Cls.CROSSWALK, Cls.GROUND_SIGN)
-IOU_CLASSES = PAINT + (seg_data.CURB_AUX,)  # the curb too: a light curb looks like an edge line
+# the curb too: a light curb looks like an edge line
+IOU_CLASSES = MARKINGS + (seg_data.CURB_AUX,)
 
 
 def soft_jaccard_loss(logits, y):
@@ -271,8 +271,7 @@ def calibrate_bias(model, x_u8, y, rounds: int = 2) -> list[float]:
         logits = torch.cat([model(x_u8[i:i + 4].float() / 255.0).cpu()
                             for i in range(0, len(x_u8), 4)])
     y = torch.where(y >= NUM_CLASSES, 0, y)
-    paint = [c for c in (Cls.LANE_LINE, Cls.STOP_LINE, Cls.CROSSWALK, Cls.GROUND_SIGN)
-             if bool((y == c).any())]
+    paint = [c for c in MARKINGS if bool((y == c).any())]
     top2 = logits.topk(2, dim=1).values
     open_ = (top2[:, 0] - top2[:, 1]) <= float(BIAS_GRID.max() - BIAS_GRID.min())
     pred0 = logits.argmax(1)

@@ -1,4 +1,4 @@
-"""The training loss's soft-Jaccard term (needs the optional torch extra: `pip install .[train]`)."""
+"""The training loss's soft-Jaccard term (needs the optional torch extra: `.[train]`)."""
 
 import pytest
 
