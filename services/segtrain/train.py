@@ -41,7 +41,8 @@ def train_command(args, cfg) -> int:
                        else 60.0 * args.render_minutes)
     frames, labels = seg_data.training_set(seed=args.seed, input_size=INPUT_SIZE,
                                            budget_s=render_budget_s, max_frames=args.frames,
-                                           workers=args.workers, cache=not args.no_cache)
+                                           workers=args.workers, cache=not args.no_cache,
+                                           turn_prob=args.turn_prob)
     render_s = time.perf_counter() - t_start
     if args.render_only:
         logger.info("%d training frames rendered in %.0f s (cached)", len(frames), render_s)
@@ -53,6 +54,7 @@ def train_command(args, cfg) -> int:
                               device=args.device, batch=args.batch, init=args.init,
                               iou_loss=args.iou_loss, arch=args.arch)
     result["render_s"] = round(render_s, 1)
+    result["turn_prob"] = args.turn_prob
     return _finish(args, out, result, t_start)
 
 
@@ -68,7 +70,8 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"  # for the render workers (spawned: they read it at import)
     stream = seg_data.FrameStream(seed=args.seed, input_size=INPUT_SIZE,
-                                  max_frames=args.frames, workers=args.workers)
+                                  max_frames=args.frames, workers=args.workers,
+                                  turn_prob=args.turn_prob)
     try:
         frames, labels = stream.wait(min(STREAM_START_FRAMES, args.frames), timeout_s=30 * 60.0)
         render_s = time.perf_counter() - t_start
@@ -82,6 +85,7 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
     finally:
         stream.close()
     result["render_s"] = round(render_s, 1)
+    result["turn_prob"] = args.turn_prob
     result["stream"] = True
     return _finish(args, out, result, t_start)
 
@@ -97,6 +101,7 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
         + [f"--device {args.device}", f"--batch {args.batch}"]
         + ([f"--arch {args.arch}"] if args.arch != "s" else [])
         + ([f"--init {args.init}"] if args.init else [])
+        + ([f"--turn-prob {args.turn_prob:g}"] if args.turn_prob != seg_data.TURN_PROB else [])
         + ([f"--iou-loss {args.iou_loss:g}"] if args.iou_loss else []))
     result["total_s"] = round(time.perf_counter() - t_start, 1)
     (out / "train_log.json").write_text(json.dumps(result, indent=2))
@@ -474,16 +479,18 @@ def model_card(result: dict) -> str:
 - **Training data**: only seeded procedural towns (services/sim/town.py), never the Karlsruhe or
   Argoverse 2 benchmark worlds: {result["frames"]} frames in chunks of one town each (seeded by
   (seed, chunk), services/segtrain/data.py), 70 % rendered by the simulator's renderer
-  (services/sim/render.py: random looks, worn paint, raised curbs with shaded faces and
-  sidewalks, shadows, haze, skyline, other cars) and 30 % by services/segtrain/synth.py (more
-  materials, curb face / top / sidewalk bands), at random route poses (half facing stop lines,
-  crosswalks or signs), with camera height 1.25-1.75 m, pitch 1.5-7 deg, roll/yaw jitter, focal
-  length +-15 %, principal point and distortion jitter. The towns' paint is restyled per town
-  (`restyled`, `thinned`): edge lines dropped on 40-100 % of road sides (curb-only edges; 85 %
-  of looks draw curbs), shoulders narrowed to none, lane-line widths 0.10-0.16 m and patches of
-  thick 0.2-0.3 m lines, 5-35 % of lane-line pieces removed. Training-time augmentation:
-  brightness, contrast, colour cast, gamma, blur, noise, horizontal flips, random
-  {CROP_HW[1]}x{CROP_HW[0]} crops.
+  (services/sim/render.py: random looks, worn paint, raised curbs and sidewalks, shadows, haze,
+  skyline, other cars) and 30 % by services/segtrain/synth.py (more materials, curb face / top /
+  sidewalk bands); curb faces sunlit in {100 * seg_data.SUNLIT_CURB:.0f} % of the looks (then
+  the curb is often brighter than worn paint), else in shade; at random route poses (half facing
+  stop lines, crosswalks or signs, {100 * result.get("turn_prob", seg_data.TURN_PROB):.0f} %
+  turned 15-90 deg off the route: lane lines crossing the view), with camera height
+  1.25-1.75 m, pitch 1.5-7 deg, roll/yaw jitter, focal length +-15 %, principal point and
+  distortion jitter. The towns' paint is restyled per town (`restyled`, `thinned`): edge lines
+  dropped on 40-100 % of road sides (curb-only edges; 85 % of looks draw curbs), shoulders
+  narrowed to none, lane-line widths 0.10-0.16 m and patches of thick 0.2-0.3 m lines, 5-35 %
+  of lane-line pieces removed. Training-time augmentation: brightness, contrast, colour cast,
+  gamma, blur, noise, horizontal flips, random {CROP_HW[1]}x{CROP_HW[0]} crops.
 - **Auxiliary class**: training labels mark raised curbs (their vertical face and top band, from
   the renderers' curb geometry) as a 7th class; the export folds it into none (channel 0 = max
   of none and curb logits at 1/2 resolution), so the model's outputs are our 6 classes. A light

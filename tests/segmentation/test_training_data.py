@@ -57,6 +57,8 @@ def test_training_chunks_are_seeded_and_do_not_depend_on_the_worker_count(tmp_pa
     assert (l1 >= Cls.LANE_LINE).any()  # paint in view, not an empty road
     f3, _ = training_set(workers=1, **{**kw, "seed": 4})
     assert not np.array_equal(f1, f3)
+    f4, _ = training_set(workers=1, **{**kw, "turn_prob": 0.0})  # --turn-prob reaches the poses
+    assert not np.array_equal(f1, f4)
 
 
 def test_raised_curbs_get_the_auxiliary_training_label_only_when_asked():
