@@ -139,9 +139,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--render-only", action="store_true",
                    help="render the training frames into the cache and stop (several training "
                         "runs with the same rendering settings then share them)")
-    p.add_argument("--turn-prob", type=float, default=0.2,
+    p.add_argument("--turn-prob", type=float, default=None,
                    help="share of training poses turned 15-90 deg off the route, lane lines "
-                        "crossing the view (default 0.2)")
+                        "crossing the view (default: services/segtrain/data.py TURN_PROB)")
     p.add_argument("--iou-loss", type=float, default=0.0,
                    help="weight of a soft-Jaccard term (paint and curb classes) added to the "
                         "cross-entropy (default 0: cross-entropy alone)")

@@ -34,6 +34,12 @@ TURN_PROB = 0.2
 SUNLIT_CURB = 0.5
 
 
+def curb_face_gain(rng) -> float:
+    """A training look's curb-face brightness relative to the curb top: sunlit (1.0-1.2) with
+    SUNLIT_CURB, else in shade (0.35-0.75); for both renderers' looks."""
+    return rng.uniform(1.0, 1.2) if rng.random() < SUNLIT_CURB else rng.uniform(0.35, 0.75)
+
+
 def resize_image(rgb: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     if rgb.shape[1::-1] == tuple(size):
         return rgb
@@ -247,8 +253,7 @@ def _sim_frames(world, rng, turn_prob: float = TURN_PROB):
         camera = random_camera(rng)
         renderer = FrameRenderer(world, camera, seed=int(rng.integers(2**31)))
         renderer.look.curb = rng.random() < 0.85  # raised curbs: light edges that are not paint
-        renderer.look.curb_face = (rng.uniform(1.0, 1.2) if rng.random() < SUNLIT_CURB
-                                   else rng.uniform(0.35, 0.75))
+        renderer.look.curb_face = curb_face_gain(rng)
         for _ in range(CHUNK_FRAMES // 4):
             pose = random_pose(world, rng, turn_prob=turn_prob)
             yield renderer.render(pose, camera.T_vehicle_camera, float(rng.uniform(0, 600)),

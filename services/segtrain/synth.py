@@ -15,7 +15,7 @@ import numpy as np
 from common.camera import CameraModel
 from common.classes import Cls
 from common.geometry import rot_z
-from services.segtrain.data import SUNLIT_CURB, resize_labels
+from services.segtrain.data import curb_face_gain, resize_labels
 
 CELL_M = 0.05
 SUPER = 2
@@ -165,7 +165,7 @@ def _style(rng) -> dict:
         "light": rng.uniform(0.55, 1.35),
         "fog_m": rng.uniform(60, 400),
         "curb": rng.uniform(140, 215) * rng.uniform(0.95, 1.05, 3) if rng.random() < 0.7 else None,
-        "face": rng.uniform(1.0, 1.2) if rng.random() < SUNLIT_CURB else rng.uniform(0.35, 0.75),
+        "face": curb_face_gain(rng),
         "walk": rng.uniform(105, 185) * rng.uniform(0.95, 1.05, 3),
     }
 

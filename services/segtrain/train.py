@@ -35,6 +35,8 @@ def train_command(args, cfg) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     minutes = float(args.minutes)
+    if args.turn_prob is None:
+        args.turn_prob = seg_data.TURN_PROB
     if args.stream:
         return _train_streamed(args, out, t_start)
     render_budget_s = (min(0.2 * minutes * 60.0, 10 * 60.0) if args.render_minutes is None
@@ -54,7 +56,6 @@ def train_command(args, cfg) -> int:
                               device=args.device, batch=args.batch, init=args.init,
                               iou_loss=args.iou_loss, arch=args.arch)
     result["render_s"] = round(render_s, 1)
-    result["turn_prob"] = args.turn_prob
     return _finish(args, out, result, t_start)
 
 
@@ -85,7 +86,6 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
     finally:
         stream.close()
     result["render_s"] = round(render_s, 1)
-    result["turn_prob"] = args.turn_prob
     result["stream"] = True
     return _finish(args, out, result, t_start)
 
@@ -93,6 +93,7 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
 def _finish(args, out: Path, result: dict, t_start: float) -> int:
     minutes = float(args.minutes)
     result["minutes"] = minutes
+    result["turn_prob"] = args.turn_prob
     result["command"] = " ".join(
         ["roadmap train-seg --out DIR", f"--seed {args.seed}", f"--minutes {minutes:g}",
          f"--frames {args.frames}", f"--workers {args.workers}"]
