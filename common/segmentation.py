@@ -140,6 +140,9 @@ class OnnxSegmenter(Segmenter):
                                np.float32)
         self.std = np.asarray(std if std is not None else meta.get("std", (1.0, 1.0, 1.0)),
                               np.float32)
+        # sub-pixel logits: s * s per class at 1/s of the input (channel c * s * s + i * s + j:
+        # class c at pixel (s y + i, s x + j)), argmaxed per sub-pixel, no upsampling
+        self.subpixel = int(meta.get("subpixel", 1))
         self.head_map, self.priority = self._heads(head_map, priority)
         self.name = name or meta.get("name", path.stem)
         if upsample not in ("nearest", "bilinear"):
@@ -150,7 +153,7 @@ class OnnxSegmenter(Segmenter):
         outputs = self._session.get_outputs()
         names = [o.name for o in outputs]
         if head_map is None:
-            head_map = {names[0]: _identity_head(int(outputs[0].shape[1]))}
+            head_map = {names[0]: _identity_head(int(outputs[0].shape[1]) // self.subpixel ** 2)}
         head_map = {str(h): {int(k): int(v) for k, v in m.items()} for h, m in head_map.items()}
         unknown = [h for h in head_map if h not in names]
         if unknown:
@@ -182,18 +185,22 @@ class OnnxSegmenter(Segmenter):
         """Labels (h, w) uint8 at the model's input size, or at out_size (W, H) when the logits
         are upsampled bilinearly before the argmax (smoother class boundaries). Logits coarser
         than the input (our model's are at 1/2) are always upsampled bilinearly before the
-        argmax (OpenCV: half-pixel centres, as torch's align_corners=False)."""
+        argmax (OpenCV: half-pixel centres, as torch's align_corners=False), unless they are
+        sub-pixel logits (metadata `subpixel`), which give labels at the input size."""
         outs = self._session.run(self.priority, {self._input_name: self.preprocess(image_rgb)})
         labels = None
         for head, logits in zip(self.priority, outs):
             scores = logits[0]
-            target = out_size
-            if target is None and scores.shape[1] < self.input_size[1]:
-                target = self.input_size
-            if target is not None and tuple(target) != scores.shape[:0:-1]:
-                scores = _resize_channels(scores, tuple(target))
-            arg = argmax_channels(scores)
-            lut = np.zeros(logits.shape[1], np.uint8)  # model classes not in the map -> 0
+            if self.subpixel > 1:
+                arg = _subpixel_argmax(scores, self.subpixel)
+            else:
+                target = out_size
+                if target is None and scores.shape[1] < self.input_size[1]:
+                    target = self.input_size
+                if target is not None and tuple(target) != scores.shape[:0:-1]:
+                    scores = _resize_channels(scores, tuple(target))
+                arg = argmax_channels(scores)
+            lut = np.zeros(len(scores) // self.subpixel ** 2, np.uint8)  # unmapped classes -> 0
             for k, v in self.head_map[head].items():
                 if k < len(lut):
                     lut[k] = v
@@ -212,6 +219,18 @@ class OnnxSegmenter(Segmenter):
         if labels.shape != (h, w):
             labels = cv2.resize(labels, (w, h), interpolation=cv2.INTER_NEAREST)
         return labels
+
+
+def _subpixel_argmax(scores: np.ndarray, s: int) -> np.ndarray:
+    """(C * s * s, h, w) sub-pixel logits -> (s h, s w) labels: the argmax of each of the s * s
+    sub-grids at (h, w), interleaved (what F.pixel_shuffle then an argmax gives, without moving
+    the float planes)."""
+    _, h, w = scores.shape
+    sub = scores.reshape(-1, s * s, h, w)
+    labels = np.empty((s * h, s * w), np.uint8)
+    for k in range(s * s):
+        labels[k // s::s, k % s::s] = argmax_channels(np.ascontiguousarray(sub[:, k]))
+    return labels
 
 
 def _resize_channels(scores: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -131,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--init", default=None,
                    help="fine-tune from a trained model: an exported RoadSegNet ONNX file (the "
                         "default architecture) or the roadseg.pt a run writes beside it (any)")
-    p.add_argument("--arch", default="s", choices=["s", "m", "m-norows"],
+    p.add_argument("--arch", default="s", choices=["s", "s-sub", "m", "m-norows"],
                    help="network size (services/segtrain/net.py ARCHS; default s)")
     p.add_argument("--stream", action="store_true",
                    help="train while --workers processes render (GPU runs: training starts after "

@@ -25,6 +25,8 @@ ARCHS = {
     "s": {"widths": [12, 20, 40, 64], "depths": [1, 1, 2], "rows": False},  # 26 k parameters
     "m": {"widths": [12, 20, 44, 84], "depths": [1, 2, 4], "rows": True},  # 55 k parameters
     "m-norows": {"widths": [12, 20, 44, 84], "depths": [1, 2, 4], "rows": False},
+    # "s" with a sub-pixel head: full-resolution logits from the 1/2 stage, at the same time
+    "s-sub": {"widths": [12, 20, 40, 64], "depths": [1, 1, 2], "rows": False, "subpixel": 2},
 }
 
 
@@ -62,11 +64,17 @@ class RoadSegNet(nn.Module):
     resolution work only (the 1/2 stage, which dominates the time, is unchanged)."""
 
     def __init__(self, widths=(16, 24, 32, 48), num_classes=NUM_CLASSES, depths=(1, 1, 2),
-                 rows=False):
+                 rows=False, subpixel=1):
         super().__init__()
         w0, w1, w2, w3 = widths
         d1, d2, d3 = depths
         self.arch = {"widths": list(widths), "depths": list(depths), "rows": bool(rows)}
+        # subpixel s > 1: the head gives s x s logits per class at 1/2 resolution (channel
+        # c * s * s + i * s + j: class c at pixel (s y + i, s x + j), as F.pixel_shuffle lays
+        # them out): full-resolution logits without a full-resolution stage
+        self.subpixel = int(subpixel)
+        if self.subpixel > 1:
+            self.arch["subpixel"] = self.subpixel
         self.stem = nn.Sequential(nn.Conv2d(3, w0, 4, 2, 1, bias=False), nn.BatchNorm2d(w0),
                                   nn.ReLU(inplace=True))  # 1/2, from every input pixel
         self.down1 = DSBlock(w0, w1, stride=2)  # 1/4
@@ -81,7 +89,7 @@ class RoadSegNet(nn.Module):
         self.dec2 = DSBlock(w3 + w2, w2)
         self.dec1 = DSBlock(w2 + w1, w1)
         self.dec0 = DSBlock(w1 + w0, w0)
-        self.head = nn.Conv2d(w0, num_classes, 1)
+        self.head = nn.Conv2d(w0, num_classes * self.subpixel ** 2, 1)
         self.export_classes = None  # set to NUM_CLASSES to fold the auxiliary classes into 0
         self.crop_rows = None  # (row0, frame height) while training on crops
         # export: logits at 1/2 resolution; the runtime upsamples them (OnnxSegmenter)
@@ -105,10 +113,16 @@ class RoadSegNet(nn.Module):
         d1 = self.dec1(torch.cat([_up(d2, f1), f1], 1))
         d0 = self.dec0(torch.cat([_up(d1, f0), f0], 1))
         logits = self.head(d0)
+        s2 = self.subpixel ** 2
+        if s2 > 1:  # (N, C * s2, h, w) -> (N, C, s2, h, w): folded per sub-pixel below
+            logits = logits.unflatten(1, (-1, s2))
         n = self.export_classes
-        if n is not None and n < self.head.out_channels:
+        if n is not None and n < logits.shape[1]:
             none = torch.maximum(logits[:, :1], logits[:, n:].amax(1, keepdim=True))
             logits = torch.cat([none, logits[:, 1:n]], 1)
+        if s2 > 1:
+            logits = logits.flatten(1, 2)
+            return logits if self.half_res_logits else F.pixel_shuffle(logits, self.subpixel)
         return logits if self.half_res_logits else _up(logits, x)
 
 
@@ -134,7 +148,9 @@ def load_onnx_weights(model: nn.Module, path) -> None:
     its shift (running mean 0, variance 1 - eps); keep batch norms in eval mode while
     fine-tuning (`freeze_batch_norm`). Convolutions are matched in execution order; a head with
     more classes than the file's keeps the file's rows and starts the extra ones as copies of
-    row 0 (none), so the auxiliary classes begin as 'none' and split off from it."""
+    row 0 (none), so the auxiliary classes begin as 'none' and split off from it; a sub-pixel
+    head from a 1/2-resolution one starts each sub-pixel as a copy of its pixel (the file's
+    model with nearest-neighbour upsampling)."""
     import onnx
     from onnx import numpy_helper
 
@@ -164,10 +180,14 @@ def load_onnx_weights(model: nn.Module, path) -> None:
             w = torch.from_numpy(tensors[node.input[1]].copy())
             b = (torch.from_numpy(tensors[node.input[2]].copy()) if len(node.input) > 2
                  else torch.zeros(w.shape[0]))
-            extra = conv.weight.shape[0] - w.shape[0]
-            if extra > 0 and conv is convs[-1]:  # the head: auxiliary classes start as none
-                w = torch.cat([w, w[:1].repeat(extra, 1, 1, 1)])
-                b = torch.cat([b, b[:1].repeat(extra)])
+            s2 = getattr(model, "subpixel", 1) ** 2
+            if conv is convs[-1] and w.shape[0] * s2 <= conv.weight.shape[0]:  # the head
+                extra = conv.weight.shape[0] // s2 - w.shape[0]
+                if extra > 0:  # auxiliary classes start as none
+                    w = torch.cat([w, w[:1].repeat(extra, 1, 1, 1)])
+                    b = torch.cat([b, b[:1].repeat(extra)])
+                if s2 > 1:  # from a 1/2-resolution head: each sub-pixel starts as its pixel
+                    w, b = w.repeat_interleave(s2, 0), b.repeat_interleave(s2, 0)
             if w.shape != conv.weight.shape:
                 raise ValueError(f"{path}: {node.name} has weights {tuple(w.shape)}, "
                                  f"the model {tuple(conv.weight.shape)}")

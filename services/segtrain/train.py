@@ -306,9 +306,10 @@ def calibrate_bias(model, x_u8, y, rounds: int = 2) -> list[float]:
                 trial[c] = float(v)
                 if (got := score(trial)) > best + 1e-4:
                     best, bias = got, trial
-    with torch.no_grad():
+    with torch.no_grad():  # a sub-pixel head: each class's offset on all its sub-pixels
         model.head.bias += torch.tensor(bias, dtype=model.head.bias.dtype,
-                                        device=model.head.bias.device)
+                                        device=model.head.bias.device
+                                        ).repeat_interleave(model.subpixel ** 2)
     logger.info("logit offsets %s: mean paint IoU on calibration frames %.4f -> %.4f "
                 "(%.1f %% of pixels open)", bias, before, best,
                 100.0 * float(open_.float().mean()))
@@ -416,8 +417,9 @@ def _validate(model, x_u8, y) -> dict:
 
 def export_onnx(model, path: Path, *, seed: int) -> None:
     """Fixed input (1, 3, H, W) float RGB / 255; output `logits` (1, 6, H/2, W/2), which
-    OnnxSegmenter upsamples bilinearly to (H, W) before its argmax; self-describing metadata
-    under `roadmap.segmentation` (read by OnnxSegmenter)."""
+    OnnxSegmenter upsamples bilinearly to (H, W) before its argmax (a sub-pixel head: (1, 6 x 4,
+    H/2, W/2), argmaxed per sub-pixel); self-describing metadata under `roadmap.segmentation`
+    (read by OnnxSegmenter)."""
     import onnx
     import torch
 
@@ -431,6 +433,8 @@ def export_onnx(model, path: Path, *, seed: int) -> None:
     meta = {"name": "roadseg", "arch": model.arch, "input_size": [w, h], "scale": 1.0 / 255.0,
             "mean": [0.0, 0.0, 0.0], "std": [1.0, 1.0, 1.0],
             "classes": [NAMES[c] for c in Cls], "seed": seed}
+    if model.subpixel > 1:  # logits (1, 6 * s * s, H/2, W/2), laid out as F.pixel_shuffle's
+        meta["subpixel"] = model.subpixel
     entry = proto.metadata_props.add()
     entry.key, entry.value = META_KEY, json.dumps(meta)
     proto.producer_name = "roadmap train-seg"

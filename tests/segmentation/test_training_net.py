@@ -71,3 +71,35 @@ def test_fine_tuning_starts_from_a_saved_run_of_the_same_architecture(tmp_path):
                                                  saved.state_dict().values(), strict=True))
     with pytest.raises(ValueError, match="architecture"):
         train._load_init(RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]), str(path))
+
+
+def test_subpixel_export_gives_full_resolution_labels_and_starts_as_its_init(tmp_path, rng):
+    """A sub-pixel head (`s-sub`) initialised from a 1/2-resolution export is that model with
+    nearest-neighbour upsampling; its own export is argmaxed per sub-pixel by OnnxSegmenter
+    into the labels of torch's pixel_shuffle."""
+    torch.manual_seed(3)
+    half = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]).eval()
+    for m in half.modules():  # distinct folded biases (the export shares equal initializers)
+        if isinstance(m, torch.nn.BatchNorm2d):
+            torch.nn.init.normal_(m.bias, 0.0, 0.1)
+    half.export_classes = NUM_CLASSES
+    half_path = tmp_path / "half.onnx"
+    train.export_onnx(half, half_path, seed=3)
+    sub = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s-sub"]).eval()
+    train._load_init(sub, str(half_path))
+    sub.export_classes = NUM_CLASSES
+    sub_path = tmp_path / "sub.onnx"
+    train.export_onnx(sub, sub_path, seed=3)
+    seg = OnnxSegmenter(sub_path)
+    assert seg.subpixel == 2
+    assert seg._session.get_outputs()[0].shape == [1, NUM_CLASSES * 4, 180, 320]
+    image = rng.integers(0, 255, (360, 640, 3), dtype=np.uint8)
+    labels = seg.segment(image)
+    x = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255.0
+    with torch.no_grad():
+        sub.half_res_logits = False
+        ref = sub(x)[0].argmax(0).numpy()
+        half_labels = half(x)[0].argmax(0).numpy()  # half_res_logits: set by its export
+    assert labels.shape == (360, 640)
+    assert (labels == ref).mean() > 0.999
+    assert (labels == half_labels.repeat(2, 0).repeat(2, 1)).mean() > 0.999
