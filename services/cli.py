@@ -12,6 +12,7 @@ import sys
 from common.config import load_config, to_toml
 from common.errors import RoadmapError
 from common.log import configure_logging
+from services.segtrain.archs import ARCHS
 
 logger = logging.getLogger("roadmap")
 
@@ -131,8 +132,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--init", default=None,
                    help="fine-tune from a trained model: an exported RoadSegNet ONNX file (the "
                         "default architecture) or the roadseg.pt a run writes beside it (any)")
-    p.add_argument("--arch", default="s", choices=["s", "s-sub", "m", "m-norows"],
-                   help="network size (services/segtrain/net.py ARCHS; default s)")
+    p.add_argument("--arch", default="s", choices=list(ARCHS),
+                   help="network size (services/segtrain/archs.py; default s)")
     p.add_argument("--stream", action="store_true",
                    help="train while --workers processes render (GPU runs: training starts after "
                         "the first 480 frames; --render-minutes is not used)")

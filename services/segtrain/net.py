@@ -16,18 +16,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from common.classes import NUM_CLASSES
-
-
-# Named sizes (`roadmap train-seg --arch`). Channel counts keep w0 + w1 a multiple of 16 (the
-# 1/2-resolution concatenation; onnxruntime's blocked convolutions pad to 16 on AVX-512).
-# One onnxruntime thread at 640x360 on this 2-core machine: s 10.7 ms, m 11.9 ms (network only).
-ARCHS = {
-    "s": {"widths": [12, 20, 40, 64], "depths": [1, 1, 2], "rows": False},  # 26 k parameters
-    "m": {"widths": [12, 20, 44, 84], "depths": [1, 2, 4], "rows": True},  # 55 k parameters
-    "m-norows": {"widths": [12, 20, 44, 84], "depths": [1, 2, 4], "rows": False},
-    # "s" with a sub-pixel head: full-resolution logits from the 1/2 stage, at the same time
-    "s-sub": {"widths": [12, 20, 40, 64], "depths": [1, 1, 2], "rows": False, "subpixel": 2},
-}
+from services.segtrain.archs import ARCHS  # noqa: F401 (net.ARCHS: the sizes it builds)
 
 
 class ConvBN(nn.Sequential):
@@ -175,12 +164,12 @@ def load_onnx_weights(model: nn.Module, path) -> None:
             for a, b in zip(seq, list(seq)[1:]):
                 if isinstance(a, nn.Conv2d) and isinstance(b, nn.BatchNorm2d):
                     norm_after[a] = b
+    s2 = getattr(model, "subpixel", 1) ** 2
     with torch.no_grad():
         for node, conv in zip(nodes, convs):
             w = torch.from_numpy(tensors[node.input[1]].copy())
             b = (torch.from_numpy(tensors[node.input[2]].copy()) if len(node.input) > 2
                  else torch.zeros(w.shape[0]))
-            s2 = getattr(model, "subpixel", 1) ** 2
             if conv is convs[-1] and w.shape[0] * s2 <= conv.weight.shape[0]:  # the head
                 extra = conv.weight.shape[0] // s2 - w.shape[0]
                 if extra > 0:  # auxiliary classes start as none

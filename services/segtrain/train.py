@@ -472,9 +472,8 @@ def model_card(result: dict) -> str:
 - **Input** `image`: float32 [1, 3, {h}, {w}] (N, C, H, W), RGB, value = pixel / 255
   (no mean/std: mean 0, std 1). {w}x{h} is the camera's own size: frames of the default
   camera go in unresized (other sizes are resized with cv2.INTER_AREA).
-- **Output** `logits`: float32 [1, 6, {h // 2}, {w // 2}] (1/2 of the input); OnnxSegmenter
-  upsamples them bilinearly to {w}x{h} (half-pixel centres, as torch's align_corners=False)
-  and takes the argmax over axis 1, then resizes the labels to the frame size (nearest). The
+- **Output** `logits`: {_output_text(result, w, h)}, then resizes the labels to the frame
+  size (nearest). The
   same settings are stored in the model's metadata (`roadmap.segmentation`), so
   `OnnxSegmenter()` needs no arguments.
 - **Network**: RoadSegNet (services/segtrain/net.py): 4x4 stride-2 stem on the full-resolution
@@ -524,8 +523,23 @@ def _arch_text(result: dict) -> str:
 
     a = ARCHS[result.get("arch", "s")]
     rows = ", row embedding at 1/8 and 1/16" if a["rows"] else ""
+    sub = ", sub-pixel head: full-resolution logits" if a.get("subpixel", 1) > 1 else ""
     return (f"`{result.get('arch', 's')}` (widths {a['widths']} at 1/2..1/16, blocks "
-            f"{a['depths']} at 1/4, 1/8, 1/16{rows})")
+            f"{a['depths']} at 1/4, 1/8, 1/16{rows}{sub})")
+
+
+def _output_text(result: dict, w: int, h: int) -> str:
+    from services.segtrain.net import ARCHS
+
+    s = ARCHS[result.get("arch", "s")].get("subpixel", 1)
+    if s > 1:
+        return (f"float32 [1, 6 x {s * s}, {h // 2}, {w // 2}] (sub-pixel logits at 1/2 of the "
+                f"input, channel c x {s * s} + {s}i + j: class c at pixel ({s}y + i, {s}x + j); "
+                "metadata `subpixel`); OnnxSegmenter takes the argmax of each sub-grid and "
+                f"interleaves them into {w}x{h} labels")
+    return (f"float32 [1, 6, {h // 2}, {w // 2}] (1/2 of the input); OnnxSegmenter upsamples "
+            f"them bilinearly to {w}x{h} (half-pixel centres, as torch's align_corners=False) "
+            "and takes the argmax over axis 1")
 
 
 def _iou_text(result: dict) -> str:
