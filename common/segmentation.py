@@ -229,7 +229,7 @@ def _subpixel_argmax(scores: np.ndarray, s: int) -> np.ndarray:
     sub = scores.reshape(-1, s * s, h, w)
     labels = np.empty((s * h, s * w), np.uint8)
     for k in range(s * s):
-        labels[k // s::s, k % s::s] = argmax_channels(np.ascontiguousarray(sub[:, k]))
+        labels[k // s::s, k % s::s] = argmax_channels(sub[:, k])  # planes stay contiguous
     return labels
 
 

@@ -16,7 +16,6 @@ from torch import nn
 from torch.nn import functional as F
 
 from common.classes import NUM_CLASSES
-from services.segtrain.archs import ARCHS  # noqa: F401 (net.ARCHS: the sizes it builds)
 
 
 class ConvBN(nn.Sequential):

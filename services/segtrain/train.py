@@ -18,6 +18,7 @@ import numpy as np
 from common.classes import MARKINGS, NAMES, NUM_CLASSES, Cls
 from common.segmentation import META_KEY
 from services.segtrain import data as seg_data
+from services.segtrain.archs import ARCHS
 
 logger = logging.getLogger(__name__)
 
@@ -124,7 +125,7 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
                      device: str = "cpu", batch: int = BATCH, init: str | None = None,
                      iou_loss: float = 0.0, arch: str = "s", more=None,
                      capacity: int = 0) -> dict:
-    """Train RoadSegNet of size `arch` (net.ARCHS) for train_s seconds on `device` (cpu: 2
+    """Train RoadSegNet of size `arch` (archs.ARCHS) for train_s seconds on `device` (cpu: 2
     threads; cuda: the frames live on the GPU), from scratch or, with `init`, from a trained
     model (fine-tuning at LR_FINETUNE; an exported ONNX file's folded batch norms are kept
     frozen), on class-weighted cross-entropy plus `iou_loss` x soft_jaccard_loss; with `more`
@@ -133,7 +134,7 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
     the export."""
     import torch
 
-    from services.segtrain.net import ARCHS, RoadSegNet, count_parameters, freeze_batch_norm
+    from services.segtrain.net import RoadSegNet, count_parameters, freeze_batch_norm
 
     torch.manual_seed(seed)
     torch.set_num_threads(THREADS)
@@ -519,8 +520,6 @@ def model_card(result: dict) -> str:
 
 
 def _arch_text(result: dict) -> str:
-    from services.segtrain.net import ARCHS
-
     a = ARCHS[result.get("arch", "s")]
     rows = ", row embedding at 1/8 and 1/16" if a["rows"] else ""
     sub = ", sub-pixel head: full-resolution logits" if a.get("subpixel", 1) > 1 else ""
@@ -529,8 +528,6 @@ def _arch_text(result: dict) -> str:
 
 
 def _output_text(result: dict, w: int, h: int) -> str:
-    from services.segtrain.net import ARCHS
-
     s = ARCHS[result.get("arch", "s")].get("subpixel", 1)
     if s > 1:
         return (f"float32 [1, 6 x {s * s}, {h // 2}, {w // 2}] (sub-pixel logits at 1/2 of the "

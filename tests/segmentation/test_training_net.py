@@ -9,8 +9,9 @@ torch = pytest.importorskip("torch", reason="training tests need the .[train] ex
 from common.classes import NUM_CLASSES  # noqa: E402
 from common.segmentation import OnnxSegmenter  # noqa: E402
 from services.segtrain import train  # noqa: E402
+from services.segtrain.archs import ARCHS  # noqa: E402
 from services.segtrain.data import TRAIN_CLASSES  # noqa: E402
-from services.segtrain.net import ARCHS, RoadSegNet, _row_features  # noqa: E402
+from services.segtrain.net import RoadSegNet, _row_features  # noqa: E402
 
 
 def test_a_crop_sees_the_row_features_of_its_place_in_the_frame():
