@@ -186,13 +186,17 @@ class OnnxSegmenter(Segmenter):
         are upsampled bilinearly before the argmax (smoother class boundaries). Logits coarser
         than the input (our model's are at 1/2) are always upsampled bilinearly before the
         argmax (OpenCV: half-pixel centres, as torch's align_corners=False), unless they are
-        sub-pixel logits (metadata `subpixel`), which give labels at the input size."""
+        sub-pixel logits (metadata `subpixel`): labels at the input size, resized to out_size
+        (nearest) when one is given."""
         outs = self._session.run(self.priority, {self._input_name: self.preprocess(image_rgb)})
         labels = None
         for head, logits in zip(self.priority, outs):
             scores = logits[0]
             if self.subpixel > 1:
                 arg = _subpixel_argmax(scores, self.subpixel)
+                if out_size is not None and tuple(out_size) != arg.shape[::-1]:
+                    arg = cv2.resize(arg.astype(np.uint8), tuple(out_size),
+                                     interpolation=cv2.INTER_NEAREST)
             else:
                 target = out_size
                 if target is None and scores.shape[1] < self.input_size[1]:

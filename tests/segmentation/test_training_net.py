@@ -104,3 +104,6 @@ def test_subpixel_export_gives_full_resolution_labels_and_starts_as_its_init(tmp
     assert labels.shape == (360, 640)
     assert (labels == ref).mean() > 0.999
     assert (labels == half_labels.repeat(2, 0).repeat(2, 1)).mean() > 0.999
+    quarter = seg.segment_model_size(image, out_size=(160, 90))
+    assert quarter.shape == (90, 160)
+    assert (quarter == labels[::4, ::4]).mean() > 0.99
