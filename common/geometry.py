@@ -120,3 +120,46 @@ def local_m_to_latlon(x_m, y_m, origin_lat_deg: float, origin_lon_deg: float):
     lat = origin_lat_deg + np.degrees(np.asarray(y_m, dtype=float) / EARTH_RADIUS_M)
     lon = origin_lon_deg + np.degrees(np.asarray(x_m, dtype=float) / (EARTH_RADIUS_M * math.cos(lat0)))
     return lat, lon
+
+
+WGS84_A = 6378137.0  # semi-major axis, metres
+WGS84_E2 = 6.69437999014e-3  # first eccentricity squared
+
+
+def geodetic_to_ecef(lat_deg, lon_deg, alt_m) -> np.ndarray:
+    """WGS84 latitude, longitude (degrees), height (metres); scalars or arrays -> ECEF (..., 3)."""
+    lat, lon = np.radians(lat_deg), np.radians(lon_deg)
+    n = WGS84_A / np.sqrt(1 - WGS84_E2 * np.sin(lat) ** 2)
+    return np.stack(
+        [
+            (n + alt_m) * np.cos(lat) * np.cos(lon),
+            (n + alt_m) * np.cos(lat) * np.sin(lon),
+            (n * (1 - WGS84_E2) + alt_m) * np.sin(lat),
+        ],
+        axis=-1,
+    )
+
+
+def ecef_to_geodetic(p) -> tuple[float, float, float]:
+    """ECEF (3,) metres -> (lat, lon, height) degrees/metres on WGS84 (Bowring iteration)."""
+    x, y, z = (float(v) for v in p)
+    lon = math.atan2(y, x)
+    r = math.hypot(x, y)
+    lat = math.atan2(z, r * (1 - WGS84_E2))
+    for _ in range(6):
+        n = WGS84_A / math.sqrt(1 - WGS84_E2 * math.sin(lat) ** 2)
+        h = r / math.cos(lat) - n
+        lat = math.atan2(z, r * (1 - WGS84_E2 * n / (n + h)))
+    return math.degrees(lat), math.degrees(lon), h
+
+
+def enu_rotation(lat_deg: float, lon_deg: float) -> np.ndarray:
+    """R_enu_ecef at a geodetic point: ECEF directions -> (east, north, up)."""
+    la, lo = math.radians(lat_deg), math.radians(lon_deg)
+    return np.array(
+        [
+            [-math.sin(lo), math.cos(lo), 0.0],
+            [-math.sin(la) * math.cos(lo), -math.sin(la) * math.sin(lo), math.cos(la)],
+            [math.cos(la) * math.cos(lo), math.cos(la) * math.sin(lo), math.sin(la)],
+        ]
+    )

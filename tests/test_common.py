@@ -6,7 +6,17 @@ import pytest
 from common import codec, grid, keys
 from common.config import RoadmapConfig, load_config
 from common.errors import CodecError, ConfigError
-from common.geometry import se2, se2_between, se2_compose, se2_inverse, se2_params, wrap_angle
+from common.geometry import (
+    ecef_to_geodetic,
+    enu_rotation,
+    geodetic_to_ecef,
+    se2,
+    se2_between,
+    se2_compose,
+    se2_inverse,
+    se2_params,
+    wrap_angle,
+)
 from common.messages import GridPatch, IngestAck, IngestBatch, Pose, Tile
 
 
@@ -182,3 +192,17 @@ def test_se2_helpers_are_consistent(rng):
         assert np.allclose(se2_params(se2(*a) @ se2(*d)), b)
         assert np.allclose(se2_inverse(se2(*a)) @ se2(*a), np.eye(3))
     assert np.isclose(wrap_angle(3 * np.pi), -np.pi)
+
+
+def test_wgs84_round_trip_and_local_enu_axes():
+    lat, lon, h = 49.0069, 8.4037, 115.0  # Karlsruhe
+    p = geodetic_to_ecef(lat, lon, h)
+    assert np.allclose(ecef_to_geodetic(p), (lat, lon, h), atol=1e-9)
+    R = enu_rotation(lat, lon)
+    assert np.allclose(R @ R.T, np.eye(3))
+    north = R @ (geodetic_to_ecef(lat + 100.0 / 111_200.0, lon, h) - p)  # ~100 m north
+    east = R @ (geodetic_to_ecef(lat, lon + 100.0 / 72_950.0, h) - p)  # ~100 m east
+    up = R @ (geodetic_to_ecef(lat, lon, h + 10.0) - p)
+    assert abs(north[1] - 100.0) < 0.3 and abs(north[0]) < 1e-6 and abs(north[2]) < 0.01
+    assert abs(east[0] - 100.0) < 0.3 and abs(east[1]) < 0.01 and abs(east[2]) < 0.01
+    assert np.allclose(up, (0.0, 0.0, 10.0), atol=1e-6)

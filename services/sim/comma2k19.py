@@ -7,7 +7,6 @@ yaw rate (z up: minus gyro z); CAN speed is the wheel odometry; the single previ
 The reference positions are those of the device (camera), not the rear axle: good to ~1 m."""
 
 import logging
-import math
 from pathlib import Path
 
 import cv2
@@ -16,38 +15,11 @@ import numpy as np
 from common.camera import CameraModel
 from common.drivelog import DriveLogMeta, DriveLogWriter
 from common.errors import DriveLogError
-from common.geometry import latlon_to_local_m, quat_wxyz_to_rot
+from common.geometry import ecef_to_geodetic, enu_rotation, latlon_to_local_m, quat_wxyz_to_rot
 
 logger = logging.getLogger(__name__)
 
-WGS84_A = 6378137.0
-WGS84_E2 = 6.69437999014e-3
 GNSS_SIGMA_M = 2.0  # u-blox consumer receiver, no per-fix accuracy in processed_log
-
-
-def ecef_to_geodetic(p: np.ndarray) -> tuple[float, float, float]:
-    """ECEF (3,) metres -> (lat, lon, height) degrees/metres on WGS84 (Bowring iteration)."""
-    x, y, z = (float(v) for v in p)
-    lon = math.atan2(y, x)
-    r = math.hypot(x, y)
-    lat = math.atan2(z, r * (1 - WGS84_E2))
-    for _ in range(6):
-        n = WGS84_A / math.sqrt(1 - WGS84_E2 * math.sin(lat) ** 2)
-        h = r / math.cos(lat) - n
-        lat = math.atan2(z, r * (1 - WGS84_E2 * n / (n + h)))
-    return math.degrees(lat), math.degrees(lon), h
-
-
-def enu_rotation(lat_deg: float, lon_deg: float) -> np.ndarray:
-    """R_enu_ecef at a geodetic point."""
-    la, lo = math.radians(lat_deg), math.radians(lon_deg)
-    return np.array(
-        [
-            [-math.sin(lo), math.cos(lo), 0.0],
-            [-math.sin(la) * math.cos(lo), -math.sin(la) * math.sin(lo), math.cos(la)],
-            [math.cos(la) * math.cos(lo), math.cos(la) * math.sin(lo), math.sin(la)],
-        ]
-    )
 
 
 def comma_camera() -> CameraModel:

@@ -5,64 +5,14 @@ converts ECEF and lat/lon into a local ENU frame at the first reference position
 reports position errors of the pose graph, of GNSS alone and of odometry alone against the
 drive's fused reference poses (`global_pose`)."""
 
-import math
 from pathlib import Path
 
 import numpy as np
 
+from common.geometry import ecef_to_geodetic, enu_rotation, geodetic_to_ecef, quat_wxyz_to_rot
 from services.vehicle.estimator import PoseEstimator, dead_reckon
 
-WGS84_A = 6378137.0  # m
-WGS84_E2 = 6.69437999014e-3
 CONSUMER_GNSS_SIGMA_M = 2.0  # u-blox without RTK (README: about 1.5 m off the reference)
-
-
-def geodetic_to_ecef(lat_deg, lon_deg, alt_m) -> np.ndarray:
-    lat, lon = np.radians(lat_deg), np.radians(lon_deg)
-    n = WGS84_A / np.sqrt(1 - WGS84_E2 * np.sin(lat) ** 2)
-    return np.stack(
-        [
-            (n + alt_m) * np.cos(lat) * np.cos(lon),
-            (n + alt_m) * np.cos(lat) * np.sin(lon),
-            (n * (1 - WGS84_E2) + alt_m) * np.sin(lat),
-        ],
-        axis=-1,
-    )
-
-
-def ecef_to_geodetic_latlon(xyz) -> tuple[float, float]:
-    x, y, z = xyz
-    lon = math.atan2(y, x)
-    p = math.hypot(x, y)
-    lat = math.atan2(z, p * (1 - WGS84_E2))
-    for _ in range(5):
-        n = WGS84_A / math.sqrt(1 - WGS84_E2 * math.sin(lat) ** 2)
-        alt = p / math.cos(lat) - n
-        lat = math.atan2(z, p * (1 - WGS84_E2 * n / (n + alt)))
-    return math.degrees(lat), math.degrees(lon)
-
-
-def enu_rotation(lat_deg: float, lon_deg: float) -> np.ndarray:
-    """R_enu_ecef at a geodetic point."""
-    lat, lon = math.radians(lat_deg), math.radians(lon_deg)
-    return np.array(
-        [
-            [-math.sin(lon), math.cos(lon), 0.0],
-            [-math.sin(lat) * math.cos(lon), -math.sin(lat) * math.sin(lon), math.cos(lat)],
-            [math.cos(lat) * math.cos(lon), math.cos(lat) * math.sin(lon), math.sin(lat)],
-        ]
-    )
-
-
-def _quat_wxyz_to_rot(q) -> np.ndarray:
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 def load_segment(root: str | Path) -> dict:
@@ -70,11 +20,11 @@ def load_segment(root: str | Path) -> dict:
     root = Path(root)
     ld = lambda p: np.load(root / p)  # noqa: E731
     ref_ecef = ld("global_pose/frame_positions")
-    lat0, lon0 = ecef_to_geodetic_latlon(ref_ecef[0])
+    lat0, lon0, _ = ecef_to_geodetic(ref_ecef[0])
     R = enu_rotation(lat0, lon0)
     ref_xy = ((ref_ecef - ref_ecef[0]) @ R.T)[:, :2]
     forward_ecef = np.array(
-        [_quat_wxyz_to_rot(q)[:, 0] for q in ld("global_pose/frame_orientations")]
+        [quat_wxyz_to_rot(q)[:, 0] for q in ld("global_pose/frame_orientations")]
     )
     forward_enu = forward_ecef @ R.T
     ref_yaw = np.unwrap(np.arctan2(forward_enu[:, 1], forward_enu[:, 0]))
