@@ -1,4 +1,5 @@
-"""Shared fixtures: seeded rng, the shared data folder, a real local Zenoh router process."""
+"""Shared fixtures: seeded rng, the shared data folder, a real local Zenoh router process; and
+how tests start our own processes (`roadmap ARGS` is `python -m services.cli ARGS`)."""
 
 import os
 import subprocess
@@ -10,6 +11,19 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("ROADMAP_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+def spawn(*args, env=None, module: str = "services.cli") -> subprocess.Popen:
+    """`python -m module ARGS` in the background from the repository root: stdout dropped,
+    stderr kept (for the failure message)."""
+    return subprocess.Popen([sys.executable, "-m", module, *map(str, args)], cwd=REPO, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def roadmap(*args, env=None, timeout: float = 60) -> subprocess.CompletedProcess:
+    """`roadmap ARGS` to the end; stdout and stderr captured as text."""
+    return subprocess.run([sys.executable, "-m", "services.cli", *map(str, args)], cwd=REPO,
+                          env=env, capture_output=True, text=True, timeout=timeout)
 
 
 @pytest.fixture
@@ -31,10 +45,7 @@ def router():
 
     port = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "router", "--listen", endpoint],
-        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-    )
+    proc = spawn("router", "--listen", endpoint)
     try:
         if not wait_for_tcp("127.0.0.1", port, 15.0):
             raise RuntimeError(f"router did not start: {proc.stderr.read().decode()[-2000:]}")

@@ -1,15 +1,8 @@
 """CLI smoke tests through a real subprocess: help, dump-config, error mapping to exit codes."""
 
-import subprocess
-import sys
 import tomllib
 
-from tests.conftest import REPO
-
-
-def roadmap(*args, env=None):
-    return subprocess.run([sys.executable, "-m", "services.cli", *args], cwd=REPO, env=env,
-                          capture_output=True, text=True, timeout=60)
+from tests.conftest import roadmap
 
 
 def test_help_lists_every_command():

@@ -5,21 +5,19 @@ a shard and a vehicle in the middle of mapping). Bounds are stated next to each 
 import json
 import os
 import socket
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
+from tests.conftest import REPO, roadmap
+
 pytestmark = pytest.mark.integration
 
-REPO = Path(__file__).resolve().parents[2]
 ARGS = ["--small", "--world", "town", "--vehicles", "2", "--shards", "2", "--seed", "3"]
 
 
 def _demo(out: Path, *extra: str) -> dict:
-    res = subprocess.run([sys.executable, "-m", "services.cli", "demo", *ARGS, *extra, "--out",
-                          str(out)], cwd=REPO, capture_output=True, text=True, timeout=400)
+    res = roadmap("demo", *ARGS, *extra, "--out", out, timeout=400)
     assert res.returncode == 0, f"demo failed:\n{res.stdout[-3000:]}\n{res.stderr[-6000:]}"
     assert "paper mean" in res.stdout  # the printed table
     return json.loads((out / "report.json").read_text())

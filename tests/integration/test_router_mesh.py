@@ -6,7 +6,6 @@ acked patch stays applied once, and the maps equal a single-process merge of the
 import os
 import signal
 import subprocess
-import sys
 import time
 
 import numpy as np
@@ -19,7 +18,7 @@ from common.contours import decode_tile, encode_tile
 from common.grid import owner_of_tile
 from common.messages import ACCEPTED, DUPLICATE, IngestAck, IngestBatch, Stats, Tile
 from services.merger.shard import MergerShard
-from tests.conftest import REPO
+from tests.conftest import spawn
 from tests.merger.helpers import lane_tile, patches_from_labels
 
 pytestmark = pytest.mark.integration
@@ -27,15 +26,10 @@ pytestmark = pytest.mark.integration
 SHARDS = 2
 
 
-def _spawn(*args, env=None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "services.cli", *args], cwd=REPO,
-                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-
-
 def _router(peers=()) -> tuple[subprocess.Popen, str]:
     port = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    proc = _spawn("router", "--listen", endpoint, *[a for p in peers for a in ("--peer", p)])
+    proc = spawn("router", "--listen", endpoint, *[a for p in peers for a in ("--peer", p)])
     if not wait_for_tcp("127.0.0.1", port, 15.0):
         proc.kill()
         raise RuntimeError(f"router did not start: {proc.stderr.read().decode()[-2000:]}")
@@ -96,7 +90,7 @@ def test_ingest_and_tiles_cross_the_mesh_and_survive_a_router_kill(tmp_path):
         env = dict(os.environ, ROADMAP_MERGER__DEBOUNCE_S="0.2")
         connects = {0: [a], 1: [b, a]}  # s1 sits behind router B, with A as its fail-over
         for s in range(SHARDS):
-            procs.append(_spawn("merger", "--shard", str(s), "--shards", str(SHARDS), "--store",
+            procs.append(spawn("merger", "--shard", str(s), "--shards", str(SHARDS), "--store",
                                 str(tmp_path / f"s{s}.sqlite"), *[x for c in connects[s] for x in
                                                                   ("--connect", c)],
                                 "--log-level", "WARNING", env=env))

@@ -18,6 +18,7 @@ from common.contours import CODEC, RAW_CODEC, encode_raw, encode_tile
 from common.messages import Pose, Tile
 from services.localizer.map_cache import TileCache
 from services.localizer.tiles import TileClient, tiles_needed
+from tests.conftest import spawn
 from tests.localizer.synthetic import fill_cache, straight_road, synthetic_drive, write_log
 
 
@@ -131,31 +132,11 @@ def test_localize_command_end_to_end(router, world_cache, rng, tmp_path):
 def test_tile_cache_fetches_from_a_real_merger_shard(router, tmp_path):
     """`roadmap merger` in its own process: ingest one patch, then fetch and decode its tile."""
     import subprocess
-    import sys
-    from pathlib import Path
 
     from common.messages import GridPatch, IngestAck, IngestBatch
 
-    repo = Path(__file__).resolve().parents[2]
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "services.cli",
-            "merger",
-            "--shard",
-            "0",
-            "--shards",
-            "1",
-            "--store",
-            str(tmp_path / "s0.sqlite"),
-            "--connect",
-            router,
-        ],
-        cwd=repo,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )
+    proc = spawn("merger", "--shard", 0, "--shards", 1, "--store", tmp_path / "s0.sqlite",
+                 "--connect", router)
     rows, cols = np.meshgrid(np.arange(200, 260), np.arange(100, 102), indexing="ij")
     cells = np.unique((rows * 512 + cols).ravel()).astype(np.uint32)
     votes = np.zeros((len(cells), 6), np.uint16)

@@ -3,8 +3,6 @@ updates, bad input, and kill -9 in the middle of ingest with no acked patch lost
 
 import os
 import signal
-import subprocess
-import sys
 import threading
 import time
 
@@ -18,7 +16,7 @@ from common.config import BusConfig
 from common.contours import decode_raw, decode_tile
 from common.messages import IngestAck, IngestBatch, Stats, Tile
 from services.merger.shard import MergerShard
-from tests.conftest import REPO
+from tests.conftest import spawn
 from tests.merger.helpers import lane_tile, patches_from_labels
 
 pytestmark = pytest.mark.integration
@@ -28,11 +26,8 @@ TILES = ((0, 0), (1, 0), (0, 1))
 
 def _start(router, store, shard=0, shards=1):
     env = dict(os.environ, ROADMAP_MERGER__DEBOUNCE_S="0.2")
-    return subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "merger", "--shard", str(shard), "--shards",
-         str(shards), "--store", str(store), "--connect", router, "--log-level", "WARNING"],
-        cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-    )
+    return spawn("merger", "--shard", shard, "--shards", shards, "--store", store, "--connect",
+                 router, "--log-level", "WARNING", env=env)
 
 
 def _wait_alive(session, shard=0, timeout_s=20.0):

@@ -3,8 +3,6 @@ consistent across streams, seeded, and overlapping routes for mapping vehicles."
 
 import json
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -13,8 +11,7 @@ from common.drivelog import DriveLog
 from common.geometry import wrap_angle
 from services.sim.simulate import simulate_drives
 from services.sim.worlds import load_world
-
-REPO = __import__("pathlib").Path(__file__).resolve().parents[2]
+from tests.conftest import roadmap
 
 
 @pytest.fixture(scope="module")
@@ -92,50 +89,16 @@ def test_production_profile_and_later_seeds_are_later_in_time(world, tmp_path):
 
 
 def test_cli_sim_prints_a_summary(tmp_path):
-    out = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "services.cli",
-            "sim",
-            "--world",
-            "town:1",
-            "--out",
-            str(tmp_path),
-            "--no-images",
-            "--max-km",
-            "0.05",
-            "--vehicles",
-            "2",
-        ],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    out = roadmap("sim", "--world", "town:1", "--out", tmp_path, "--no-images", "--max-km",
+                  0.05, "--vehicles", 2, timeout=120)
     assert out.returncode == 0, out.stderr
     assert "2 drive logs" in out.stdout and "km" in out.stdout and "frames" in out.stdout
     assert (tmp_path / "map-1-d0" / "log.json").exists()
 
 
 def test_cli_world_render_writes_a_png(tmp_path):
-    out = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "services.cli",
-            "world",
-            "render",
-            "--world",
-            "town:1",
-            "--out",
-            str(tmp_path / "map.png"),
-        ],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    out = roadmap("world", "render", "--world", "town:1", "--out", tmp_path / "map.png",
+                  timeout=120)
     assert out.returncode == 0, out.stderr
     assert (tmp_path / "map.png").stat().st_size > 1000
 

@@ -6,8 +6,6 @@ import json
 import os
 import signal
 import sqlite3
-import subprocess
-import sys
 import threading
 import time
 
@@ -16,7 +14,7 @@ import numpy as np
 from common.config import load_config
 from common.drivelog import DriveLog
 from services.vehicle.node import StageTimer, build_mapper, map_log
-from tests.conftest import REPO
+from tests.conftest import spawn
 from tests.vehicle.synthetic import write_drive_log
 
 SETS = [
@@ -42,26 +40,8 @@ def _applied(db) -> list[str]:
 
 
 def _vehicle(log, state, router):
-    return subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "services.cli",
-            "vehicle",
-            "--log",
-            str(log),
-            "--state",
-            str(state),
-            "--connect",
-            router,
-            "--segmenter",
-            "truth",
-            *SETS,
-        ],
-        cwd=REPO,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )
+    return spawn("vehicle", "--log", log, "--state", state, "--connect", router, "--segmenter",
+                 "truth", *SETS)
 
 
 def _expected_ids(log_dir) -> set[str]:
@@ -82,22 +62,8 @@ def test_outbox_survives_kill_and_restart_without_double_counting(tmp_path, rout
     first = _vehicle(log_dir, state, router)  # no shard alive yet: it must wait, not drop
     time.sleep(3.0)
     assert first.poll() is None
-    peer = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "tests.vehicle.ingest_peer",
-            "--connect",
-            router,
-            "--db",
-            str(db),
-            "--delay",
-            "0.15",
-        ],
-        cwd=REPO,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )
+    peer = spawn("--connect", router, "--db", db, "--delay", 0.15,
+                 module="tests.vehicle.ingest_peer")
     try:
         deadline = time.monotonic() + 60
         while len(_applied(db)) < 3 and time.monotonic() < deadline and first.poll() is None:

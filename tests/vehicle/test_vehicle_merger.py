@@ -3,8 +3,6 @@ applied once; a vehicle that re-maps the same drive from scratch gets only dupli
 
 import json
 import signal
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -13,33 +11,15 @@ from common import codec, keys
 from common.bus import open_session
 from common.config import BusConfig
 from common.messages import Stats
-from tests.conftest import REPO
+from tests.conftest import roadmap, spawn
 from tests.vehicle.synthetic import write_drive_log
 
 SETS = ["--set", "grid.shards=1", "--set", "vehicle.seal_every_frames=40"]
 
 
 def _run_vehicle(log, state, router):
-    return subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "services.cli",
-            "vehicle",
-            "--log",
-            str(log),
-            "--state",
-            str(state),
-            "--connect",
-            router,
-            "--segmenter",
-            "truth",
-            *SETS,
-        ],
-        cwd=REPO,
-        capture_output=True,
-        timeout=180,
-    )
+    return roadmap("vehicle", "--log", log, "--state", state, "--connect", router, "--segmenter",
+                   "truth", *SETS, timeout=180)
 
 
 def _merger_counters(router) -> dict:
@@ -55,36 +35,18 @@ def _merger_counters(router) -> dict:
 def test_vehicle_uploads_to_a_real_shard_exactly_once(tmp_path, router):
     log = tmp_path / "log"
     write_drive_log(log, np.random.default_rng(3), length_m=160.0, outage_m=None, frame_stride=2)
-    merger = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "services.cli",
-            "merger",
-            "--shard",
-            "0",
-            "--shards",
-            "1",
-            "--store",
-            str(tmp_path / "s0.sqlite"),
-            "--connect",
-            router,
-            *SETS,
-        ],
-        cwd=REPO,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )
+    merger = spawn("merger", "--shard", 0, "--shards", 1, "--store", tmp_path / "s0.sqlite",
+                   "--connect", router, *SETS)
     try:
         first = _run_vehicle(log, tmp_path / "state-a", router)
-        assert first.returncode == 0, first.stderr.decode()[-3000:]
+        assert first.returncode == 0, first.stderr[-3000:]
         a = json.loads((tmp_path / "state-a" / "summary.json").read_text())
         assert a["patches_acked"] == a["patches_accepted"] > 0 and a["duplicates"] == 0
         applied = _merger_counters(router)["patches_applied"]
         assert applied == a["patches_accepted"]
 
         second = _run_vehicle(log, tmp_path / "state-b", router)  # same drive, fresh state
-        assert second.returncode == 0, second.stderr.decode()[-3000:]
+        assert second.returncode == 0, second.stderr[-3000:]
         b = json.loads((tmp_path / "state-b" / "summary.json").read_text())
         assert b["duplicates"] == b["patches_acked"] == a["patches_acked"]
         assert _merger_counters(router)["patches_applied"] == applied
