@@ -36,21 +36,57 @@ def render_heldout(spec: str, *, frames: int, seed: int, rare_prob: float = 0.3)
 
 
 class IouAccumulator:
+    """Per-class IoU pooled over frames. Each frame's counts are kept, so that how much the
+    pooled IoU owes to which frames were drawn can be bootstrapped (`interval`): on 100 frames
+    of the Karlsruhe world, a second draw of frames moved lane-line IoU by 0.09."""
+
     def __init__(self):
-        self.inter = {c: 0 for c in CLASSES}
-        self.union = {c: 0 for c in CLASSES}
-        self.true_px = {c: 0 for c in CLASSES}
+        self._frames: list[np.ndarray] = []  # per frame: (3, classes) intersection, union, truth
 
     def add(self, pred, truth, mask=None):
         if mask is not None:
             pred, truth = pred[mask], truth[mask]
-        for c in CLASSES:
+        counts = np.zeros((3, len(CLASSES)), np.int64)
+        for k, c in enumerate(CLASSES):
             p, t = pred == c, truth == c
-            self.inter[c] += int((p & t).sum())
-            self.union[c] += int((p | t).sum())
-            self.true_px[c] += int(t.sum())
+            counts[:, k] = (p & t).sum(), (p | t).sum(), t.sum()
+        self._frames.append(counts)
+
+    @property
+    def true_px(self) -> dict:
+        totals = self._totals(np.arange(len(self._frames)))
+        return {c: int(totals[2, k]) for k, c in enumerate(CLASSES)}
+
+    def _totals(self, frames) -> np.ndarray:
+        if not self._frames:
+            return np.zeros((3, len(CLASSES)), np.int64)
+        return np.stack(self._frames)[frames].sum(axis=0)
 
     def result(self) -> dict:
         """{class name: IoU, or None where the class never occurs in the truth}."""
-        return {NAMES[c]: (round(self.inter[c] / self.union[c], 4) if self.true_px[c] else None)
-                for c in CLASSES}
+        return _iou(self._totals(np.arange(len(self._frames))))
+
+    def draws(self, n: int, rng) -> list[dict]:
+        """`n` bootstrap results: the pooled IoU of as many frames drawn with replacement."""
+        counts, m = np.stack(self._frames), len(self._frames)
+        return [_iou(counts[rng.integers(0, m, m)].sum(axis=0)) for _ in range(n)]
+
+    def interval(self, n: int = 1000, seed: int = 0, q=(5, 95)) -> dict:
+        """{class name: [low, high] percentiles of the bootstrapped IoU, or None}."""
+        return bootstrap_interval(self.draws(n, np.random.default_rng(seed)), q)
+
+
+def bootstrap_interval(draws: list[dict], q=(5, 95)) -> dict:
+    """Percentiles per class of bootstrap results ({name: IoU or None} each); None where the
+    class is absent from every draw."""
+    out = {}
+    for name in draws[0]:
+        vals = [d[name] for d in draws if d[name] is not None]
+        out[name] = [round(float(v), 4) for v in np.percentile(vals, q)] if vals else None
+    return out
+
+
+def _iou(totals: np.ndarray) -> dict:
+    inter, union, true = totals
+    return {NAMES[c]: (round(float(inter[k] / union[k]), 4) if true[k] else None)
+            for k, c in enumerate(CLASSES)}

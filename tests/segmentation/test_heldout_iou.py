@@ -26,3 +26,27 @@ def test_packaged_model_iou_floor_on_heldout_karlsruhe_frames(shared_data):
         if iou[name] is not None:
             assert iou[name] >= floor, f"{name} IoU {iou[name]:.3f} < {floor} ({iou})"
     assert iou["lane_line"] is not None
+
+
+def test_iou_is_pooled_over_frames_and_its_bootstrap_interval_spans_the_frames():
+    import numpy as np
+
+    from services.segtrain.evaluate import IouAccumulator
+
+    truth = np.zeros((10, 10), np.uint8)
+    truth[:, :5] = 2  # lane line: 50 px
+    perfect, half = truth.copy(), truth.copy()
+    half[:, :5] = 0  # the line missed, and 25 road pixels called lane line instead
+    half[:5, 5:] = 2
+    acc = IouAccumulator()
+    for pred in (perfect, half, half, half):
+        acc.add(pred, truth)
+    assert acc.result()["lane_line"] == round(50 / (50 + 3 * 75), 4)  # not the mean of frames
+    assert acc.result()["stop_line"] is None and acc.true_px[2] == 200
+    low, high = acc.interval(n=400)["lane_line"]
+    assert 0.0 <= low < acc.result()["lane_line"] < high <= 1.0
+    assert acc.interval(n=400)["stop_line"] is None
+    same = IouAccumulator()
+    for _ in range(4):
+        same.add(half, truth)
+    assert same.interval(n=50)["lane_line"] == [0.0, 0.0]
