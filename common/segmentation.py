@@ -195,8 +195,7 @@ class OnnxSegmenter(Segmenter):
             if self.subpixel > 1:
                 arg = _subpixel_argmax(scores, self.subpixel)
                 if out_size is not None and tuple(out_size) != arg.shape[::-1]:
-                    arg = cv2.resize(arg.astype(np.uint8), tuple(out_size),
-                                     interpolation=cv2.INTER_NEAREST)
+                    arg = cv2.resize(arg, tuple(out_size), interpolation=cv2.INTER_NEAREST)
             else:
                 target = out_size
                 if target is None and scores.shape[1] < self.input_size[1]:

@@ -52,19 +52,16 @@ class IouAccumulator:
             counts[:, k] = (p & t).sum(), (p | t).sum(), t.sum()
         self._frames.append(counts)
 
+    def _totals(self) -> np.ndarray:
+        return sum(self._frames, np.zeros((3, len(CLASSES)), np.int64))
+
     @property
     def true_px(self) -> dict:
-        totals = self._totals(np.arange(len(self._frames)))
-        return {c: int(totals[2, k]) for k, c in enumerate(CLASSES)}
-
-    def _totals(self, frames) -> np.ndarray:
-        if not self._frames:
-            return np.zeros((3, len(CLASSES)), np.int64)
-        return np.stack(self._frames)[frames].sum(axis=0)
+        return {c: int(n) for c, n in zip(CLASSES, self._totals()[2], strict=True)}
 
     def result(self) -> dict:
         """{class name: IoU, or None where the class never occurs in the truth}."""
-        return _iou(self._totals(np.arange(len(self._frames))))
+        return _iou(self._totals())
 
     def draws(self, n: int, rng) -> list[dict]:
         """`n` bootstrap results: the pooled IoU of as many frames drawn with replacement."""
