@@ -4,7 +4,9 @@
     python bench/bench_segmentation.py --out DIR [--quick] [--frames N]  -> DIR/segmentation.json
 
 Frames: the simulator's renderer at seeded random poses on the world's routes (30 % facing a stop
-line, crosswalk or sign), default camera with 0.3 deg vibration, a new look every 10 frames.
+line, crosswalk or sign), default camera with 0.3 deg vibration, a new look every 10 frames;
+and, as `stop_facing`, as many Karlsruhe frames that all face one of its stop lines (the route
+frames show too few to measure the stop line: services/segtrain/evaluate.py FacingPoses).
 IoU per class = sum of intersections / sum of unions over all frames of a world, at the camera's
 full resolution (labels resized back from the model's input size), and also inside the IPM ROI
 (the pixels the mapper actually uses), each with a 90 % bootstrap interval over the frames
@@ -27,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from common.camera import build_ipm_lookup  # noqa: E402
-from common.classes import NAMES  # noqa: E402
+from common.classes import NAMES, Cls  # noqa: E402
 from common.config import RoiConfig  # noqa: E402
 from common.segmentation import DEFAULT_MODEL, get_segmenter  # noqa: E402
 from services.segtrain.evaluate import (  # noqa: E402
@@ -59,9 +61,10 @@ def heldout_worlds() -> list[tuple[str, str]]:
     return out
 
 
-def evaluate_world(seg, spec: str, *, frames: int, seed: int, rng) -> tuple[dict, list[dict]]:
+def evaluate_world(seg, spec: str, *, frames: int, seed: int, rng,
+                   facing: Cls | None = None) -> tuple[dict, list[dict]]:
     """The world's report entry, and DRAWS bootstrap results of its full-frame IoU."""
-    pairs, camera = render_heldout(spec, frames=frames, seed=seed)
+    pairs, camera = render_heldout(spec, frames=frames, seed=seed, facing=facing)
     roi = RoiConfig()
     ipm = build_ipm_lookup(camera, x_min_m=roi.x_min_m, length_m=roi.length_m, width_m=roi.width_m)
     roi_mask = np.zeros(camera.width * camera.height, bool)
@@ -124,6 +127,12 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
         [_mean_over_worlds({w: {"iou": d[i]} for w, d in draws.items()}, "iou")
          for i in range(DRAWS)])
     report["iou_roi"] = _mean_over_worlds(report["worlds"], "iou_roi")
+    if worlds and worlds[0][0] == "karlsruhe":  # the only world with stop lines
+        logger.info("rendering and segmenting karlsruhe frames facing stop lines")
+        report["stop_facing"], _ = evaluate_world(
+            seg, worlds[0][1], frames=10 if quick else frames, seed=1, rng=rng,
+            facing=Cls.STOP_LINE)
+        report["stop_facing"]["world"] = "karlsruhe"
     report["ms_p50"], report["ms_p95"] = report["speed"]["ms_p50"], report["speed"]["ms_p95"]
     return report
 
@@ -148,7 +157,9 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "segmentation.json").write_text(json.dumps(report, indent=2))
-    sys.stdout.write(json.dumps({k: report[k] for k in ("iou", "iou_roi", "speed")}, indent=2) + "\n")
+    shown = {k: report[k] for k in ("iou", "iou_roi", "speed")}
+    shown["stop_facing"] = report.get("stop_facing", {}).get("iou")
+    sys.stdout.write(json.dumps(shown, indent=2) + "\n")
     return 0
 
 

@@ -50,3 +50,33 @@ def test_iou_is_pooled_over_frames_and_its_bootstrap_interval_spans_the_frames()
     for _ in range(4):
         same.add(half, truth)
     assert same.interval(n=50)["lane_line"] == [0.0, 0.0]
+
+
+def test_stop_facing_frames_each_show_a_stop_line_ahead_of_a_camera_on_the_road():
+    """The benchmark's stop-line frames (`facing`): every pose stands on the road with a stop
+    line 4-20 m ahead, and the rendered truth shows it."""
+    import math
+
+    import numpy as np
+
+    from common.classes import Cls
+    from services.segtrain.evaluate import FacingPoses, render_heldout
+    from services.sim.worlds import load_world
+
+    world = load_world("town:0.6", 2)
+    poses = FacingPoses(world, Cls.STOP_LINE)
+    stops = [m.polygon_xy_m for m in world.markings if m.cls == Cls.STOP_LINE]
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        x, y, yaw = poses.draw(rng)
+        assert poses.on_road(np.array([[x, y]]))[0]
+        ahead = []
+        for poly in stops:  # the stop line's points in the vehicle frame
+            d = poly - [x, y]
+            fwd = d @ [math.cos(yaw), math.sin(yaw)]
+            left = d @ [-math.sin(yaw), math.cos(yaw)]
+            if ((fwd > 0) & (np.abs(left) < 0.6 * fwd)).any():  # inside a +-31 deg cone
+                ahead.append(float(np.hypot(*(poly.mean(axis=0) - [x, y]))))
+        assert ahead and 3.5 <= min(ahead) <= 20.5
+    pairs, _ = render_heldout("town:0.6", frames=6, seed=2, facing=Cls.STOP_LINE)
+    assert all((truth == Cls.STOP_LINE).sum() > 100 for _, truth in pairs)
