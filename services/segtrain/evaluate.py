@@ -70,6 +70,7 @@ class FacingPoses:
             raise ValueError(f"no {cls.name} marking with road before it")
 
     def on_road(self, xy) -> np.ndarray:
+        """(N,) bool: world points (N, 2) on the road surface or its paint."""
         c = np.floor((xy[:, 0] - self._x0) / self.CELL_M).astype(np.int64)
         r = np.floor((xy[:, 1] - self._y0) / self.CELL_M).astype(np.int64)
         h, w = self._road.shape

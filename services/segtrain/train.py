@@ -221,10 +221,19 @@ def _load_init(model, init: str) -> bool:
     an exported ONNX file (batch norms folded: kept frozen). -> whether norms must stay frozen."""
     import torch
 
-    from services.segtrain.net import load_onnx_weights
+    from services.segtrain.net import RoadSegNet, load_onnx_weights, onnx_widths, widen
 
     if str(init).endswith(".onnx"):
-        load_onnx_weights(model, init)
+        widths = onnx_widths(init)
+        if widths == model.arch["widths"]:
+            load_onnx_weights(model, init)
+        else:  # a narrower model's weights, new channels added (net.widen)
+            s2 = model.subpixel ** 2
+            small = RoadSegNet(widths=widths, num_classes=model.head.out_channels // s2,
+                               depths=model.arch["depths"], rows=model.arch["rows"],
+                               subpixel=model.subpixel)
+            load_onnx_weights(small, init)
+            widen(small, model)
         return True
     saved = torch.load(init, map_location="cpu")
     if saved["arch"] != model.arch:

@@ -107,3 +107,30 @@ def test_subpixel_export_gives_full_resolution_labels_and_starts_as_its_init(tmp
     quarter = seg.segment_model_size(image, out_size=(160, 90))
     assert quarter.shape == (90, 160)
     assert (quarter == labels[::4, ::4]).mean() > 0.99
+
+
+def test_a_widened_model_starts_as_the_narrower_export_it_is_fine_tuned_from(tmp_path):
+    """`--arch w16 --init s.onnx`: the new channels (the ones onnxruntime's blocked convolutions
+    pad to anyway) start random but ignored, so the wider model computes the narrower one."""
+    from services.segtrain.net import onnx_widths, widen
+
+    torch.manual_seed(4)
+    small = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]).eval()
+    for m in small.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            torch.nn.init.normal_(m.bias, 0.0, 0.1)
+    small.export_classes = NUM_CLASSES
+    path = tmp_path / "s.onnx"
+    train.export_onnx(small, path, seed=4)
+    assert onnx_widths(path) == ARCHS["s"]["widths"]
+    wide = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["w16"]).eval()
+    assert train._load_init(wide, str(path)) is True  # folded batch norms: kept frozen
+    wide.export_classes = NUM_CLASSES
+    small.half_res_logits = wide.half_res_logits = False
+    x = torch.rand(2, 3, 96, 160)
+    with torch.no_grad():
+        assert torch.allclose(wide(x), small(x), atol=1e-4)
+        assert wide.stem[0].weight[12:].abs().sum() > 0  # new channels are not dead
+        assert not wide.head.weight[:, 12:].any()  # and not yet read
+    with pytest.raises(ValueError, match="cannot widen"):
+        widen(wide, RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]))
