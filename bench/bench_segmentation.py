@@ -1,7 +1,8 @@
 """Segmentation benchmark: per-class IoU of the packaged ONNX model on held-out rendered frames
 (Karlsruhe Lanelet2 and Argoverse 2 worlds, never trained on) and its speed on one core.
 
-    python bench/bench_segmentation.py --out DIR [--quick] [--frames N]  -> DIR/segmentation.json
+    python bench/bench_segmentation.py --out DIR [--quick] [--frames N] [--model M.onnx]
+        [--baseline B.onnx]  -> DIR/segmentation.json
 
 Frames: the simulator's renderer at seeded random poses on the world's routes (30 % facing a stop
 line, crosswalk or sign), default camera with 0.3 deg vibration, a new look every 10 frames;
@@ -12,7 +13,10 @@ full resolution (labels resized back from the model's input size), and also insi
 (the pixels the mapper actually uses), each with a 90 % bootstrap interval over the frames
 (`iou_ci90`; for the mean over worlds, each world's frames redrawn). Speed: p50/p95 ms of one
 forward pass + argmax at the model's input size with one onnxruntime thread, and of the whole
-`segment()` call at full size."""
+`segment()` call at full size. With `--baseline`, a second model is scored on the same frames,
+and `baseline.diff` (and each world's) is the model's IoU minus the baseline's, with a paired
+bootstrap interval (`diff_ci90`: both scored on each draw of frames), to compare two training
+recipes far more finely than their own intervals allow."""
 
 import argparse
 import json
@@ -36,6 +40,7 @@ from services.segtrain.evaluate import (  # noqa: E402
     CLASSES,
     IouAccumulator,
     bootstrap_interval,
+    paired_draws,
     render_heldout,
 )
 
@@ -61,24 +66,34 @@ def heldout_worlds() -> list[tuple[str, str]]:
     return out
 
 
-def evaluate_world(seg, spec: str, *, frames: int, seed: int, rng,
-                   facing: Cls | None = None) -> tuple[dict, list[dict]]:
-    """The world's report entry, and DRAWS bootstrap results of its full-frame IoU."""
+def evaluate_world(seg, spec: str, *, frames: int, seed: int, rng, facing: Cls | None = None,
+                   baseline=None) -> tuple[dict, list[dict], list[dict] | None]:
+    """The world's report entry, DRAWS bootstrap results of its full-frame IoU, and with a
+    `baseline` segmenter, DRAWS paired bootstrap results of seg's IoU minus the baseline's."""
     pairs, camera = render_heldout(spec, frames=frames, seed=seed, facing=facing)
     roi = RoiConfig()
     ipm = build_ipm_lookup(camera, x_min_m=roi.x_min_m, length_m=roi.length_m, width_m=roi.width_m)
     roi_mask = np.zeros(camera.width * camera.height, bool)
     roi_mask[ipm.pixel_index] = True
     roi_mask = roi_mask.reshape(camera.height, camera.width)
-    full, in_roi = IouAccumulator(), IouAccumulator()
+    full, in_roi, base = IouAccumulator(), IouAccumulator(), IouAccumulator()
     for rgb, truth in pairs:
         pred = seg.segment(rgb)
         full.add(pred, truth)
         in_roi.add(pred, truth, roi_mask)
+        if baseline is not None:
+            base.add(baseline.segment(rgb), truth)
     draws = full.draws(DRAWS, rng)
-    return {"frames": len(pairs), "iou": full.result(), "iou_ci90": bootstrap_interval(draws),
-            "iou_roi": in_roi.result(), "iou_roi_ci90": in_roi.interval(DRAWS),
-            "true_pixels": {NAMES[c]: full.true_px[c] for c in CLASSES}}, draws
+    entry = {"frames": len(pairs), "iou": full.result(), "iou_ci90": bootstrap_interval(draws),
+             "iou_roi": in_roi.result(), "iou_roi_ci90": in_roi.interval(DRAWS),
+             "true_pixels": {NAMES[c]: full.true_px[c] for c in CLASSES}}
+    if baseline is None:
+        return entry, draws, None
+    # its own generator: the model's own intervals do not depend on whether a baseline is given
+    paired = paired_draws(full, base, DRAWS, np.random.default_rng(seed))
+    entry["baseline"] = {"iou": base.result(), "diff": _diff(entry["iou"], base.result()),
+                         "diff_ci90": bootstrap_interval(paired)}
+    return entry, draws, paired
 
 
 def speed(seg, *, repeats: int, rng) -> dict:
@@ -106,10 +121,13 @@ def speed(seg, *, repeats: int, rng) -> dict:
     }
 
 
-def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES) -> dict:
+def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES,
+        baseline_path: str | None = None) -> dict:
     import onnxruntime
 
     seg = get_segmenter("onnx", model_path=model_path, intra_op_threads=1)
+    baseline = (get_segmenter("onnx", model_path=baseline_path, intra_op_threads=1)
+                if baseline_path else None)
     rng = np.random.default_rng(0)
     report = {
         "model": seg.name, "model_bytes": Path(model_path or DEFAULT_MODEL).stat().st_size,
@@ -117,24 +135,38 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
         "speed": speed(seg, repeats=30 if quick else 200, rng=rng),
         "targets": TARGETS, "worlds": {},
     }
-    worlds, draws = heldout_worlds(), {}
+    worlds, draws, paired = heldout_worlds(), {}, {}
     for name, spec in worlds[:2] if quick else worlds:
         logger.info("rendering and segmenting %s", name)
-        report["worlds"][name], draws[name] = evaluate_world(
-            seg, spec, frames=10 if quick else frames, seed=1, rng=rng)
+        report["worlds"][name], draws[name], paired[name] = evaluate_world(
+            seg, spec, frames=10 if quick else frames, seed=1, rng=rng, baseline=baseline)
     report["iou"] = _mean_over_worlds(report["worlds"], "iou")
-    report["iou_ci90"] = bootstrap_interval(
-        [_mean_over_worlds({w: {"iou": d[i]} for w, d in draws.items()}, "iou")
-         for i in range(DRAWS)])
+    report["iou_ci90"] = bootstrap_interval(_means_of_draws(draws))
     report["iou_roi"] = _mean_over_worlds(report["worlds"], "iou_roi")
     if worlds and worlds[0][0] == "karlsruhe":  # the only world with stop lines
         logger.info("rendering and segmenting karlsruhe frames facing stop lines")
-        report["stop_facing"], _ = evaluate_world(
+        report["stop_facing"], _, _ = evaluate_world(
             seg, worlds[0][1], frames=10 if quick else frames, seed=1, rng=rng,
-            facing=Cls.STOP_LINE)
+            facing=Cls.STOP_LINE, baseline=baseline)
         report["stop_facing"]["world"] = "karlsruhe"
+    if baseline is not None:  # the model minus the baseline, on the same frames
+        base_iou = _mean_over_worlds(
+            {w: {"iou": e["baseline"]["iou"]} for w, e in report["worlds"].items()}, "iou")
+        report["baseline"] = {"model": str(baseline_path), "iou": base_iou,
+                              "diff": _diff(report["iou"], base_iou),
+                              "diff_ci90": bootstrap_interval(_means_of_draws(paired))}
     report["ms_p50"], report["ms_p95"] = report["speed"]["ms_p50"], report["speed"]["ms_p95"]
     return report
+
+
+def _means_of_draws(draws: dict) -> list[dict]:
+    """{world: [draw i: {class: value}]} -> [draw i: mean over worlds]."""
+    return [_mean_over_worlds({w: {"iou": d[i]} for w, d in draws.items()}, "iou")
+            for i in range(DRAWS)]
+
+
+def _diff(a: dict, b: dict) -> dict:
+    return {k: None if a[k] is None or b[k] is None else round(a[k] - b[k], 4) for k in a}
 
 
 def _mean_over_worlds(worlds: dict, key: str) -> dict:
@@ -151,14 +183,20 @@ def main(argv=None) -> int:
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--model", default=None, help="ONNX file (default: the packaged model)")
     parser.add_argument("--frames", type=int, default=FRAMES, help="frames per world")
+    parser.add_argument("--baseline", default=None,
+                        help="a second ONNX file scored on the same frames: the JSON gains the "
+                             "model's IoU minus the baseline's with paired 90 %% intervals")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    report = run(args.quick, args.model, args.frames)
+    report = run(args.quick, args.model, args.frames, args.baseline)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "segmentation.json").write_text(json.dumps(report, indent=2))
     shown = {k: report[k] for k in ("iou", "iou_roi", "speed")}
     shown["stop_facing"] = report.get("stop_facing", {}).get("iou")
+    if "baseline" in report:
+        shown["minus_baseline"] = report["baseline"]["diff"]
+        shown["minus_baseline_ci90"] = report["baseline"]["diff_ci90"]
     sys.stdout.write(json.dumps(shown, indent=2) + "\n")
     return 0
 

@@ -126,6 +126,21 @@ class IouAccumulator:
         return bootstrap_interval(self.draws(n, np.random.default_rng(seed)), q)
 
 
+def paired_draws(a: IouAccumulator, b: IouAccumulator, n: int, rng) -> list[dict]:
+    """`n` bootstrap results of IoU(a) - IoU(b), both scored on the same draw of frames (two
+    models on the same frames): much narrower than the two intervals apart, since the frames
+    that are hard for one model are hard for the other ({name: difference or None})."""
+    ca, cb = np.stack(a._frames), np.stack(b._frames)
+    if ca.shape != cb.shape:
+        raise ValueError(f"paired accumulators hold {len(ca)} and {len(cb)} frames")
+    out = []
+    for _ in range(n):
+        pick = rng.integers(0, len(ca), len(ca))
+        ia, ib = _iou(ca[pick].sum(axis=0)), _iou(cb[pick].sum(axis=0))
+        out.append({k: (None if ia[k] is None else ia[k] - ib[k]) for k in ia})
+    return out
+
+
 def bootstrap_interval(draws: list[dict], q=(5, 95)) -> dict:
     """Percentiles per class of bootstrap results ({name: IoU or None} each); None where the
     class is absent from every draw."""

@@ -80,3 +80,31 @@ def test_stop_facing_frames_each_show_a_stop_line_ahead_of_a_camera_on_the_road(
         assert ahead and 3.5 <= min(ahead) <= 20.5
     pairs, _ = render_heldout("town:0.6", frames=6, seed=2, facing=Cls.STOP_LINE)
     assert all((truth == Cls.STOP_LINE).sum() > 100 for _, truth in pairs)
+
+
+def test_paired_draws_score_both_models_on_the_same_frames():
+    """bench --baseline: the interval of a difference between two models on the same frames.
+    A model against itself differs by exactly 0 on every draw; one that is better on every
+    frame stays above 0."""
+    import numpy as np
+
+    from services.segtrain.evaluate import IouAccumulator, bootstrap_interval, paired_draws
+
+    truth = np.zeros((10, 10), np.uint8)
+    good, bad = IouAccumulator(), IouAccumulator()
+    for width in range(1, 9):  # lane lines from 1 to 8 px wide: frames differ a lot
+        truth = np.zeros((10, 10), np.uint8)
+        truth[:, :width] = 2
+        worse = truth.copy()
+        worse[:, width:width + 1] = 2  # one column too wide
+        good.add(truth, truth)
+        bad.add(worse, truth)
+    rng = np.random.default_rng(0)
+    assert bootstrap_interval(paired_draws(bad, bad, 200, rng))["lane_line"] == [0.0, 0.0]
+    diff = bootstrap_interval(paired_draws(good, bad, 200, rng))["lane_line"]
+    assert 0.0 < diff[0] < diff[1] < 0.5
+    assert bootstrap_interval(paired_draws(good, bad, 200, rng))["stop_line"] is None
+    short = IouAccumulator()
+    short.add(truth, truth)
+    with pytest.raises(ValueError, match="frames"):
+        paired_draws(good, short, 10, rng)
