@@ -100,9 +100,11 @@ def _latency_entry(result: dict) -> dict:
     p95 = result.get("p95_ms", result.get("ms_p95"))
     entry = {"p50_ms": p50, "p95_ms": p95,
              "per_s": round(1000.0 / p50, 2) if isinstance(p50, int | float) and p50 > 0 else None}
-    for key in ("model", "iou", "iou_roi"):
+    for key in ("model", "iou", "iou_ci90", "iou_roi"):
         if key in result:
             entry[key] = result[key]
+    if isinstance(result.get("stop_facing"), dict):  # segmentation: frames facing stop lines
+        entry["stop_facing_iou"] = result["stop_facing"].get("iou")
     return entry
 
 

@@ -56,6 +56,17 @@ def test_bench_records_missing_and_failing_benchmarks(tmp_path):
     assert out["cores"] == os.cpu_count()
 
 
+def test_a_flat_benchmark_result_becomes_a_stage_with_its_quality_figures():
+    seg = {"model": "roadseg", "ms_p50": 12.5, "ms_p95": 16.0, "iou": {"lane_line": 0.72},
+           "iou_ci90": {"lane_line": [0.71, 0.73]}, "speed": {"threads": 1},
+           "stop_facing": {"frames": 300, "iou": {"stop_line": 0.705}}}
+    out = bench.merge_results({"segmentation": {"ok": True, "result": seg}})
+    stage = out["stages"]["segmentation"]
+    assert stage["p50_ms"] == 12.5 and stage["per_s"] == 80.0
+    assert stage["iou_ci90"] == {"lane_line": [0.71, 0.73]}
+    assert stage["stop_facing_iou"] == {"stop_line": 0.705} and "speed" not in stage
+
+
 def test_bench_kills_what_a_benchmark_leaves_running(tmp_path):
     pidfile = tmp_path / "pid"
     (tmp_path / "bench_leak.py").write_text(
