@@ -224,12 +224,11 @@ def widen(small: nn.Module, wide: nn.Module) -> None:
             n < w for n, w in zip(wide.arch["widths"], small.arch["widths"], strict=True)):
         raise ValueError(f"cannot widen {small.arch} into {wide.arch}")
 
-    def prefix(n_old):
-        return torch.arange(n_old)
-
     def concat(deep_old, deep_new, skip_old):  # cat([up(deep), skip]) channel positions
         return torch.cat([torch.arange(deep_old), deep_new + torch.arange(skip_old)])
 
+    # a decoder block's depthwise convolution outputs, and its pointwise one reads, the
+    # concatenation's layout; every other channel keeps its index
     cat_in = {"dec2": concat(w3, n3, w2), "dec1": concat(w2, n2, w1), "dec0": concat(w1, n1, w0)}
     modules = dict(wide.named_modules())
     old = dict(small.named_modules())
@@ -240,10 +239,10 @@ def widen(small: nn.Module, wide: nn.Module) -> None:
             src = old[name]
             block = name.split(".")[0]
             depthwise = conv.groups > 1
-            into = cat_in.get(block) if (depthwise and name.endswith("dw.0")) else None
-            out_map = into if into is not None else prefix(src.out_channels)
-            in_map = (cat_in[block] if block in cat_in and name.endswith("pw.0")
-                      else prefix(src.in_channels // src.groups))
+            out_map = (cat_in[block] if block in cat_in and depthwise
+                       else torch.arange(src.out_channels))
+            in_map = (cat_in[block] if block in cat_in and not depthwise
+                      else torch.arange(src.in_channels // src.groups))
             w = conv.weight
             if depthwise:
                 w[out_map] = src.weight
