@@ -69,9 +69,11 @@ def heldout_worlds() -> list[tuple[str, str]]:
 
 
 def evaluate_world(seg, spec: str, *, frames: int, seed: int, rng, facing: Cls | None = None,
-                   baseline=None) -> tuple[dict, list[dict], list[dict] | None]:
+                   baseline=None, paired_rng=None) -> tuple[dict, list[dict], list[dict] | None]:
     """The world's report entry, DRAWS bootstrap results of its full-frame IoU, and with a
-    `baseline` segmenter, DRAWS paired bootstrap results of seg's IoU minus the baseline's."""
+    `baseline` segmenter, DRAWS paired bootstrap results (drawn with `paired_rng`, so that the
+    model's own draws do not depend on whether a baseline is given) of seg's IoU minus the
+    baseline's."""
     pairs, camera = render_heldout(spec, frames=frames, seed=seed, facing=facing)
     roi = RoiConfig()
     ipm = build_ipm_lookup(camera, x_min_m=roi.x_min_m, length_m=roi.length_m, width_m=roi.width_m)
@@ -91,8 +93,7 @@ def evaluate_world(seg, spec: str, *, frames: int, seed: int, rng, facing: Cls |
              "true_pixels": {NAMES[c]: full.true_px[c] for c in CLASSES}}
     if baseline is None:
         return entry, draws, None
-    # its own generator: the model's own intervals do not depend on whether a baseline is given
-    paired = paired_draws(full, base, DRAWS, np.random.default_rng(seed))
+    paired = paired_draws(full, base, DRAWS, paired_rng)
     entry["baseline"] = {"iou": base.result(), "diff": _diff(entry["iou"], base.result()),
                          "diff_ci90": bootstrap_interval(paired)}
     return entry, draws, paired
@@ -130,7 +131,7 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
     seg = get_segmenter("onnx", model_path=model_path, intra_op_threads=1)
     baseline = (get_segmenter("onnx", model_path=baseline_path, intra_op_threads=1)
                 if baseline_path else None)
-    rng = np.random.default_rng(0)
+    rng, paired_rng = np.random.default_rng(0), np.random.default_rng(1)
     report = {
         "model": seg.name, "model_bytes": Path(model_path or DEFAULT_MODEL).stat().st_size,
         "python": platform.python_version(), "onnxruntime": onnxruntime.__version__,
@@ -141,7 +142,8 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
     for name, spec in worlds[:2] if quick else worlds:
         logger.info("rendering and segmenting %s", name)
         report["worlds"][name], draws[name], paired[name] = evaluate_world(
-            seg, spec, frames=10 if quick else frames, seed=1, rng=rng, baseline=baseline)
+            seg, spec, frames=10 if quick else frames, seed=1, rng=rng, baseline=baseline,
+            paired_rng=paired_rng)
     report["iou"] = _mean_over_worlds(report["worlds"], "iou")
     report["iou_ci90"] = bootstrap_interval(_means_of_draws(draws))
     report["iou_roi"] = _mean_over_worlds(report["worlds"], "iou_roi")
@@ -149,7 +151,7 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
         logger.info("rendering and segmenting karlsruhe frames facing stop lines")
         report["stop_facing"], _, _ = evaluate_world(
             seg, worlds[0][1], frames=10 if quick else frames, seed=1, rng=rng,
-            facing=Cls.STOP_LINE, baseline=baseline)
+            facing=Cls.STOP_LINE, baseline=baseline, paired_rng=paired_rng)
         report["stop_facing"]["world"] = "karlsruhe"
     if baseline is not None:  # the model minus the baseline, on the same frames
         base_iou = _mean_over_worlds(
