@@ -42,7 +42,6 @@ from services.segtrain.evaluate import (  # noqa: E402
     CLASSES,
     IouAccumulator,
     bootstrap_interval,
-    paired_draws,
     render_heldout,
 )
 
@@ -93,7 +92,7 @@ def evaluate_world(seg, spec: str, *, frames: int, seed: int, rng, facing: Cls |
              "true_pixels": {NAMES[c]: full.true_px[c] for c in CLASSES}}
     if baseline is None:
         return entry, draws, None
-    paired = paired_draws(full, base, DRAWS, paired_rng)
+    paired = full.draws(DRAWS, paired_rng, minus=base)
     entry["baseline"] = {"iou": base.result(), "diff": _diff(entry["iou"], base.result()),
                          "diff_ci90": bootstrap_interval(paired)}
     return entry, draws, paired

@@ -13,17 +13,21 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("ROADMAP_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
+def _argv(module: str, args) -> list[str]:
+    return [sys.executable, "-m", module, *map(str, args)]
+
+
 def spawn(*args, env=None, module: str = "services.cli") -> subprocess.Popen:
     """`python -m module ARGS` in the background from the repository root: stdout dropped,
     stderr kept (for the failure message)."""
-    return subprocess.Popen([sys.executable, "-m", module, *map(str, args)], cwd=REPO, env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    return subprocess.Popen(_argv(module, args), cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
 
 
 def roadmap(*args, env=None, timeout: float = 60) -> subprocess.CompletedProcess:
     """`roadmap ARGS` to the end; stdout and stderr captured as text."""
-    return subprocess.run([sys.executable, "-m", "services.cli", *map(str, args)], cwd=REPO,
-                          env=env, capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(_argv("services.cli", args), cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=timeout)
 
 
 @pytest.fixture

@@ -116,29 +116,28 @@ class IouAccumulator:
         """{class name: IoU, or None where the class never occurs in the truth}."""
         return _iou(self._totals())
 
-    def draws(self, n: int, rng) -> list[dict]:
-        """`n` bootstrap results: the pooled IoU of as many frames drawn with replacement."""
+    def draws(self, n: int, rng, minus: "IouAccumulator | None" = None) -> list[dict]:
+        """`n` bootstrap results: the pooled IoU of as many frames drawn with replacement. With
+        `minus` (a second model on the same frames), its IoU on the same draw is subtracted: the
+        paired difference, much narrower than the two intervals apart, since the frames that
+        are hard for one model are hard for the other ({name: difference or None})."""
         counts, m = np.stack(self._frames), len(self._frames)
-        return [_iou(counts[rng.integers(0, m, m)].sum(axis=0)) for _ in range(n)]
+        other = None if minus is None else np.stack(minus._frames)
+        if other is not None and other.shape != counts.shape:
+            raise ValueError(f"paired accumulators hold {m} and {len(other)} frames")
+        out = []
+        for _ in range(n):
+            pick = rng.integers(0, m, m)
+            iou = _iou(counts[pick].sum(axis=0))
+            if other is not None:
+                base = _iou(other[pick].sum(axis=0))
+                iou = {k: None if v is None else v - base[k] for k, v in iou.items()}
+            out.append(iou)
+        return out
 
     def interval(self, n: int = 1000, seed: int = 0, q=(5, 95)) -> dict:
         """{class name: [low, high] percentiles of the bootstrapped IoU, or None}."""
         return bootstrap_interval(self.draws(n, np.random.default_rng(seed)), q)
-
-
-def paired_draws(a: IouAccumulator, b: IouAccumulator, n: int, rng) -> list[dict]:
-    """`n` bootstrap results of IoU(a) - IoU(b), both scored on the same draw of frames (two
-    models on the same frames): much narrower than the two intervals apart, since the frames
-    that are hard for one model are hard for the other ({name: difference or None})."""
-    ca, cb = np.stack(a._frames), np.stack(b._frames)
-    if ca.shape != cb.shape:
-        raise ValueError(f"paired accumulators hold {len(ca)} and {len(cb)} frames")
-    out = []
-    for _ in range(n):
-        pick = rng.integers(0, len(ca), len(ca))
-        ia, ib = _iou(ca[pick].sum(axis=0)), _iou(cb[pick].sum(axis=0))
-        out.append({k: (None if ia[k] is None else ia[k] - ib[k]) for k in ia})
-    return out
 
 
 def bootstrap_interval(draws: list[dict], q=(5, 95)) -> dict:

@@ -88,7 +88,7 @@ def test_paired_draws_score_both_models_on_the_same_frames():
     frame stays above 0."""
     import numpy as np
 
-    from services.segtrain.evaluate import IouAccumulator, bootstrap_interval, paired_draws
+    from services.segtrain.evaluate import IouAccumulator, bootstrap_interval
 
     truth = np.zeros((10, 10), np.uint8)
     good, bad = IouAccumulator(), IouAccumulator()
@@ -100,11 +100,11 @@ def test_paired_draws_score_both_models_on_the_same_frames():
         good.add(truth, truth)
         bad.add(worse, truth)
     rng = np.random.default_rng(0)
-    assert bootstrap_interval(paired_draws(bad, bad, 200, rng))["lane_line"] == [0.0, 0.0]
-    diff = bootstrap_interval(paired_draws(good, bad, 200, rng))["lane_line"]
+    assert bootstrap_interval(bad.draws(200, rng, minus=bad))["lane_line"] == [0.0, 0.0]
+    diff = bootstrap_interval(good.draws(200, rng, minus=bad))["lane_line"]
     assert 0.0 < diff[0] < diff[1] < 0.5
-    assert bootstrap_interval(paired_draws(good, bad, 200, rng))["stop_line"] is None
+    assert bootstrap_interval(good.draws(200, rng, minus=bad))["stop_line"] is None
     short = IouAccumulator()
     short.add(truth, truth)
     with pytest.raises(ValueError, match="frames"):
-        paired_draws(good, short, 10, rng)
+        good.draws(10, rng, minus=short)
