@@ -140,6 +140,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--render-only", action="store_true",
                    help="render the training frames into the cache and stop (several training "
                         "runs with the same rendering settings then share them)")
+    p.add_argument("--refine-only", default=None, metavar="MODEL",
+                   help="set the paint-border settings of a trained ONNX model (metadata "
+                        "`refine`) on the calibration frames of these rendering settings, and "
+                        "stop (done by every training run)")
     p.add_argument("--turn-prob", type=float, default=None,
                    help="share of training poses turned 15-90 deg off the route, lane lines "
                         "crossing the view (default: services/segtrain/data.py TURN_PROB)")

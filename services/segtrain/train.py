@@ -13,10 +13,11 @@ import math
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from common.classes import MARKINGS, NAMES, NUM_CLASSES, Cls
-from common.segmentation import META_KEY
+from common.segmentation import META_KEY, OnnxSegmenter, refine_paint_borders
 from services.segtrain import data as seg_data
 from services.segtrain.archs import ARCHS
 
@@ -49,6 +50,14 @@ def train_command(args, cfg) -> int:
     render_s = time.perf_counter() - t_start
     if args.render_only:
         logger.info("%d training frames rendered in %.0f s (cached)", len(frames), render_s)
+        return 0
+    if args.refine_only:  # the calibration frames a training run on these frames would use
+        n_cal = validation_frames(len(frames)) // 2
+        refine = calibrate_refine(args.refine_only, frames[:n_cal], labels[:n_cal])
+        set_metadata(args.refine_only, refine=refine)
+        logger.info("%s: refine %s (set on the first %d of %d town frames, seed %d)",
+                    args.refine_only, refine, min(n_cal, CALIBRATE_FRAMES), len(frames),
+                    args.seed)
         return 0
     # the training time does not depend on whether the frames came from the cache: a rerun
     # with a warm cache trains exactly as long as the first run did
@@ -142,7 +151,7 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
     torch.backends.cudnn.benchmark = True
     dev = torch.device(device)
     rng = np.random.default_rng(seed)
-    n_val = (max(len(frames) // 20, 4) if more is None
+    n_val = (validation_frames(len(frames)) if more is None
              else min(STREAM_VAL_FRAMES, len(frames) // 2))
     n_loaded, cap = len(frames), max(capacity, len(frames)) if more is not None else len(frames)
     x_all = torch.empty((cap, 3) + frames.shape[1:3], dtype=torch.uint8, device=dev)  # NCHW
@@ -205,6 +214,11 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
     torch.save({"arch": model.arch, "state": model.state_dict()}, out / "roadseg.pt")
     export_onnx(model, model_path, seed=seed)
     max_diff, agree = verify_onnx(model, model_path, x_all[:4])
+    refine = calibrate_refine(model_path, frames[:n_cal], labels[:n_cal])
+    set_metadata(model_path, refine=refine)
+    val_runtime = runtime_iou(model_path, frames[n_cal:n_val], labels[n_cal:n_val])
+    logger.info("paint borders: %s; validation IoU as the runtime segments: %s", refine,
+                val_runtime)
     return {
         "steps": step, "train_s": round(time.perf_counter() - t0, 1), "frames": n_loaded,
         "params": count_parameters(model), "class_weights": np.round(weights, 3).tolist(),
@@ -212,8 +226,15 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
         "val_iou_town": val_iou, "onnx_max_abs_diff": max_diff, "onnx_argmax_agreement": agree,
         "model_bytes": model_path.stat().st_size, "seed": seed, "device": device,
         "batch": batch, "init": init, "lr_max": lr_max, "logit_bias": bias,
-        "iou_loss_weight": iou_loss, "arch": arch,
+        "iou_loss_weight": iou_loss, "arch": arch, "refine": refine,
+        "val_iou_town_runtime": val_runtime,
     }
+
+
+def validation_frames(n_frames: int) -> int:
+    """How many of a pre-rendered training set's first frames are held out (the first half
+    of them sets the logit offsets and the paint-border settings, the second validates)."""
+    return max(n_frames // 20, 4)
 
 
 def _load_init(model, init: str) -> bool:
@@ -324,6 +345,72 @@ def calibrate_bias(model, x_u8, y, rounds: int = 2) -> list[float]:
                 "(%.1f %% of pixels open)", bias, before, best,
                 100.0 * float(open_.float().mean()))
     return bias
+
+
+REFINE_WINDOWS = (3, 5, 7, 9)
+REFINE_LEVELS = (0.4, 0.5, 0.6, 0.7, 0.8)
+
+
+def calibrate_refine(model_path, frames: np.ndarray, labels: np.ndarray) -> dict:
+    """The paint-border settings (common.segmentation.refine_paint_borders: box `window`,
+    threshold `level`) that maximise the mean paint IoU of the exported model as the runtime
+    runs it, on up to CALIBRATE_FRAMES town frames (N, H, W, 3) at the model's input size;
+    {} (no refinement) when no setting beats the labels as they are."""
+    seg = OnnxSegmenter(model_path, refine={})
+    frames, labels = frames[:CALIBRATE_FRAMES], labels[:CALIBRATE_FRAMES]
+    raw = [seg.segment_model_size(f) for f in frames]
+    grays = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
+
+    def score(settings):
+        preds = [refine_paint_borders(g, p, **settings) if settings else p
+                 for g, p in zip(grays, raw, strict=True)]
+        ious = paint_iou(preds, labels)
+        return float(np.mean(list(ious.values()))) if ious else 0.0
+
+    best, best_score = {}, score({})
+    for window in REFINE_WINDOWS:
+        for level in REFINE_LEVELS:
+            settings = {"window": window, "level": level}
+            if (s := score(settings)) > best_score:
+                best, best_score = settings, s
+    return best
+
+
+def runtime_iou(model_path, frames: np.ndarray, labels: np.ndarray) -> dict:
+    """Per-class IoU of the exported model as OnnxSegmenter segments (its metadata's settings)
+    on town frames at the model's input size."""
+    seg = OnnxSegmenter(model_path)
+    return paint_iou([seg.segment_model_size(f) for f in frames], labels, classes=list(Cls)[1:])
+
+
+def paint_iou(preds, truths, classes=MARKINGS) -> dict:
+    """{name: IoU} pooled over frames, for the classes present in the truth (auxiliary
+    training classes count as none)."""
+    n = NUM_CLASSES
+    confusion = np.zeros(n * n, np.int64)
+    for pred, truth in zip(preds, truths, strict=True):
+        truth = np.where(truth >= n, 0, truth).astype(np.int64)
+        confusion += np.bincount((truth * n + pred).ravel(), minlength=n * n)
+    confusion = confusion.reshape(n, n)  # [truth, pred]
+    out = {}
+    for c in classes:
+        inter, true = confusion[c, c], confusion[c].sum()
+        if true:
+            out[NAMES[c]] = round(float(inter / (true + confusion[:, c].sum() - inter)), 4)
+    return out
+
+
+def set_metadata(path, **updates) -> None:
+    """Update keys of an exported model's `roadmap.segmentation` metadata in place."""
+    import onnx
+
+    proto = onnx.load(str(path))
+    entry = next((e for e in proto.metadata_props if e.key == META_KEY), None)
+    if entry is None:
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = META_KEY, "{}"
+    entry.value = json.dumps({**json.loads(entry.value), **updates})
+    onnx.save(proto, str(path))
 
 
 def _heap_trimmer():
