@@ -124,15 +124,17 @@ def speed(seg, *, repeats: int, rng) -> dict:
 
 
 def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES,
-        baseline_path: str | None = None) -> dict:
+        baseline_path: str | None = None, baseline_unrefined: bool = False) -> dict:
     import onnxruntime
 
     seg = get_segmenter("onnx", model_path=model_path, intra_op_threads=1)
-    baseline = (get_segmenter("onnx", model_path=baseline_path, intra_op_threads=1)
+    baseline = (get_segmenter("onnx", model_path=baseline_path, intra_op_threads=1,
+                              **({"refine": {}} if baseline_unrefined else {}))
                 if baseline_path else None)
     rng, paired_rng = np.random.default_rng(0), np.random.default_rng(1)
     report = {
         "model": seg.name, "model_bytes": Path(model_path or DEFAULT_MODEL).stat().st_size,
+        "refine": seg.refine,  # paint borders re-decided on the image ({}: off)
         "python": platform.python_version(), "onnxruntime": onnxruntime.__version__,
         "speed": speed(seg, repeats=30 if quick else 200, rng=rng),
         "targets": TARGETS, "worlds": {},
@@ -155,7 +157,8 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
     if baseline is not None:  # the model minus the baseline, on the same frames
         base_iou = _mean_over_worlds(
             {w: {"iou": e["baseline"]["iou"]} for w, e in report["worlds"].items()}, "iou")
-        report["baseline"] = {"model": str(baseline_path), "iou": base_iou,
+        report["baseline"] = {"model": str(baseline_path), "refine": baseline.refine,
+                              "iou": base_iou,
                               "diff": _diff(report["iou"], base_iou),
                               "diff_ci90": bootstrap_interval(_means_of_draws(paired))}
     report["ms_p50"], report["ms_p95"] = report["speed"]["ms_p50"], report["speed"]["ms_p95"]
@@ -189,9 +192,12 @@ def main(argv=None) -> int:
     parser.add_argument("--baseline", default=None,
                         help="a second ONNX file scored on the same frames: the JSON gains the "
                              "model's IoU minus the baseline's with paired 90 %% intervals")
+    parser.add_argument("--baseline-unrefined", action="store_true",
+                        help="score the baseline without its paint-border refinement (with "
+                             "--baseline the same file: what the refinement buys)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    report = run(args.quick, args.model, args.frames, args.baseline)
+    report = run(args.quick, args.model, args.frames, args.baseline, args.baseline_unrefined)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "segmentation.json").write_text(json.dumps(report, indent=2))

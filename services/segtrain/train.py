@@ -609,8 +609,12 @@ def model_card(result: dict) -> str:
 - **Logit offsets** added to the head's bias after training (calibrate_bias: per class, the
   offset maximising the mean paint IoU on half of the held-out town frames):
   {result.get("logit_bias")}.
+- **Paint borders** re-decided on the image's brightness by the runtime (metadata `refine`,
+  common.segmentation.refine_paint_borders; calibrate_refine: the setting maximising the mean
+  paint IoU on the same town frames as the offsets, {{}} = off): {result.get("refine")}.
 - **Validation** (the other half of the held-out procedural-town frames, model input size):
-  {result["val_iou_town"]}.
+  {result["val_iou_town"]} (torch, before the border refinement); as the runtime segments them:
+  {result.get("val_iou_town_runtime")}.
 - **Held-out benchmark worlds**: see the metrics section below (bench/bench_segmentation.py).
 """
 
