@@ -219,7 +219,8 @@ class OnnxSegmenter(Segmenter):
             for k, v in self.head_map[head].items():
                 if k < len(lut):
                     lut[k] = v
-            mapped = lut[arg]
+            # our own model's classes map to themselves: skip the gather (0.3 ms a frame)
+            mapped = arg if np.array_equal(lut, np.arange(len(lut))) else lut[arg]
             if labels is None:
                 labels = mapped
             else:
