@@ -97,4 +97,5 @@ RingChannel = zenoh.handlers.RingChannel
 SampleKind = zenoh.SampleKind
 QueryTarget = zenoh.QueryTarget
 ConsolidationMode = zenoh.ConsolidationMode
-Callback = zenoh.handlers.Callback  # Callback(fn, indirect=False): runs on the RX thread, no extra thread
+# Callback(fn, indirect=False): runs on the RX thread, no extra thread
+Callback = zenoh.handlers.Callback

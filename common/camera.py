@@ -58,7 +58,8 @@ class CameraModel:
     ) -> "CameraModel":
         R = mount_rotation(math.radians(pitch_deg), math.radians(roll_deg), math.radians(yaw_deg))
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-        return cls(int(width), int(height), K, np.asarray(dist, float), se3(R, [x_m, y_m, height_m]))
+        T = se3(R, [x_m, y_m, height_m])
+        return cls(int(width), int(height), K, np.asarray(dist, float), T)
 
     def to_dict(self) -> dict:
         return {

@@ -39,7 +39,9 @@ def pack_array(a: np.ndarray) -> dict:
     return {"dtype": dtype.str, "shape": list(a.shape), "data": a.astype(dtype).tobytes()}
 
 
-def unpack_array(obj: Any, what: str, dtype: str, ndim: int, width: int | None = None) -> np.ndarray:
+def unpack_array(
+    obj: Any, what: str, dtype: str, ndim: int, width: int | None = None
+) -> np.ndarray:
     if not isinstance(obj, dict) or set(obj) != {"dtype", "shape", "data"}:
         raise CodecError(f"{what}: expected an array map {{dtype, shape, data}}")
     if obj["dtype"] != dtype:
@@ -340,7 +342,9 @@ def decode(data: bytes, expect: type | None = None):
     if env["v"] != VERSION:
         raise CodecError(f"unsupported version {env['v']!r}, expected {VERSION}")
     if env["type"] not in _DECODERS:
-        raise CodecError(f"unknown message type {env['type']!r}, expected one of {sorted(_DECODERS)}")
+        raise CodecError(
+            f"unknown message type {env['type']!r}, expected one of {sorted(_DECODERS)}"
+        )
     if expect is not None and env["type"] != _CODECS[expect][0]:
         raise CodecError(f"expected a {_CODECS[expect][0]}, got {env['type']}")
     if not isinstance(env["body"], dict):

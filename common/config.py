@@ -20,7 +20,7 @@ ENV_PREFIX = "ROADMAP_"
 
 @dataclass(frozen=True)
 class BusConfig:
-    """How a process reaches Zenoh (client of a router by default; multicast scouting always off)."""
+    """How a process reaches Zenoh (a router's client by default; multicast scouting always off)."""
 
     mode: str = "client"
     connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
@@ -32,7 +32,8 @@ class BusConfig:
 
 @dataclass(frozen=True)
 class CameraConfig:
-    """Front camera: pinhole + OpenCV distortion; mounting in the vehicle frame (x fwd, y left, z up)."""
+    """Front camera: pinhole + OpenCV distortion; mounting in the vehicle frame (x fwd, y left,
+    z up)."""
 
     width: int = 640
     height: int = 360
@@ -66,7 +67,7 @@ class RoiConfig:
 
 @dataclass(frozen=True)
 class DemoConfig:
-    """`roadmap demo` / `roadmap up`: drive lengths, segmenter and time limits of the local fleet."""
+    """`roadmap demo` / `roadmap up`: drive lengths, segmenter, time limits of the local fleet."""
 
     segmenter: str = "truth"  # "truth" (corrupted true labels) or "onnx" (needs rendered images)
     images: bool = False  # render camera frames for the mapping drives (slow on 2 cores)
@@ -122,7 +123,8 @@ class LocalizerConfig:
     # demo drive: x 0.039 -> 0.029, y 0.033 -> 0.027 m, yaw 0.087 -> 0.076 deg)
     ipm_sigma_px: float = 1.0
     icp_cov_scale: float = 60.0  # single-frame ICP is over-confident (correlated points, vibration)
-    # (Karlsruhe drive, truth map: 30 -> x 0.078, y 0.114 m; 60 -> 0.070, 0.087; 120 -> 0.066, 0.093)
+    # (Karlsruhe drive, truth map: 30 -> x 0.078, y 0.114 m; 60 -> 0.070, 0.087; 120 -> 0.066,
+    # 0.093)
     gnss_inflate: float = 1.5  # consumer GNSS has a slowly varying bias: trust it less
     speed_sigma_rel: float = 0.005  # the odometry scale itself is estimated
     # random walk of that scale (1/sqrt(s)): a wheel's scale error is all but constant; a faster
@@ -145,9 +147,10 @@ class LocalizerConfig:
     # along-road position cannot walk along the lines (Karlsruhe drive: x 0.070 -> 0.062, y 0.087 ->
     # 0.051 m; town 0.066 -> 0.053, 0.082 -> 0.067 m)
     icp_prior: bool = True
-    icp_track_gate_m: float = 0.5  # first correspondence gate while tracking (init: icp_gate_start_m;
-    # the gate also grows with the filter's position sigma): 1.5 m let a frame lock onto the next
-    # marking (Karlsruhe drive: x error 0.114 -> 0.070 m)
+    # first correspondence gate while tracking (init: icp_gate_start_m; the gate also grows with
+    # the filter's position sigma): 1.5 m let a frame lock onto the next marking (Karlsruhe
+    # drive: x error 0.114 -> 0.070 m)
+    icp_track_gate_m: float = 0.5  # first correspondence gate while tracking, m
     # estimate the camera pitch per frame in ICP: 0.3 deg of vibration moves a point 12 m ahead
     # by 0.5 m (Karlsruhe drive: longitudinal error 0.124 -> 0.085 m mean)
     estimate_attitude: bool = True
@@ -255,7 +258,8 @@ def _merge(obj, overrides: Mapping, where: str):
     for key, value in overrides.items():
         if key not in hints:
             known = ", ".join(sorted(hints))
-            raise ConfigError(f"unknown config key {where}.{key} (known: {known})".replace("..", "."))
+            msg = f"unknown config key {where}.{key} (known: {known})"
+            raise ConfigError(msg.replace("..", "."))
         current = getattr(obj, key)
         sub = f"{where}.{key}" if where else key
         if dataclasses.is_dataclass(current):

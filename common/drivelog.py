@@ -66,7 +66,9 @@ class DriveLog:
         except (OSError, ValueError, KeyError) as exc:
             raise DriveLogError(f"{self.root}: not a drive log ({exc})") from exc
         if raw.get("format") != FORMAT_VERSION:
-            raise DriveLogError(f"{self.root}: format {raw.get('format')!r}, expected {FORMAT_VERSION}")
+            raise DriveLogError(
+                f"{self.root}: format {raw.get('format')!r}, expected {FORMAT_VERSION}"
+            )
         missing = [k for k in STREAM_KEYS if k not in self.streams]
         if missing:
             raise DriveLogError(f"{self.root}: streams.npz lacks {missing}")

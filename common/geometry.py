@@ -118,7 +118,8 @@ def latlon_to_local_m(lat_deg, lon_deg, origin_lat_deg: float, origin_lon_deg: f
 def local_m_to_latlon(x_m, y_m, origin_lat_deg: float, origin_lon_deg: float):
     lat0 = math.radians(origin_lat_deg)
     lat = origin_lat_deg + np.degrees(np.asarray(y_m, dtype=float) / EARTH_RADIUS_M)
-    lon = origin_lon_deg + np.degrees(np.asarray(x_m, dtype=float) / (EARTH_RADIUS_M * math.cos(lat0)))
+    east = np.asarray(x_m, dtype=float)
+    lon = origin_lon_deg + np.degrees(east / (EARTH_RADIUS_M * math.cos(lat0)))
     return lat, lon
 
 

@@ -1,4 +1,4 @@
-"""Wire messages (DESIGN.md: Wire format) as plain dataclasses; common.codec turns them into bytes."""
+"""Wire messages (DESIGN.md: Wire format) as plain dataclasses; common.codec makes them bytes."""
 
 from dataclasses import dataclass, field
 

@@ -75,7 +75,8 @@ class GroundTruthSegmenter(Segmenter):
         n = self._rng.poisson(self.miss_rate * area / 150.0)
         for i in self._rng.integers(0, len(ys), n):
             r = int(self._rng.integers(3, 9))
-            y0, y1, x0, x1 = max(ys[i] - r, 0), min(ys[i] + r, h), max(xs[i] - r, 0), min(xs[i] + r, w)
+            y0, y1 = max(ys[i] - r, 0), min(ys[i] + r, h)
+            x0, x1 = max(xs[i] - r, 0), min(xs[i] + r, w)
             window = labels[y0:y1, x0:x1]
             window[window >= Cls.LANE_LINE] = Cls.ROAD
 
@@ -135,7 +136,8 @@ class OnnxSegmenter(Segmenter):
         meta = json.loads(self._session.get_modelmeta().custom_metadata_map.get(META_KEY, "{}"))
         inp = self._session.get_inputs()[0]
         self._input_name = inp.name
-        self.input_size = tuple(input_size or meta.get("input_size") or (inp.shape[3], inp.shape[2]))
+        self.input_size = tuple(input_size or meta.get("input_size")
+                                or (inp.shape[3], inp.shape[2]))
         self.scale = float(scale if scale is not None else meta.get("scale", 1.0 / 255.0))
         self.mean = np.asarray(mean if mean is not None else meta.get("mean", (0.0, 0.0, 0.0)),
                                np.float32)
@@ -202,7 +204,7 @@ class OnnxSegmenter(Segmenter):
         (`refine`, refine_paint_borders) when the model's settings ask for it."""
         outs = self._session.run(self.priority, {self._input_name: self.preprocess(image_rgb)})
         labels = None
-        for head, logits in zip(self.priority, outs):
+        for head, logits in zip(self.priority, outs, strict=True):
             scores = logits[0]
             if self.subpixel > 1:
                 arg = _subpixel_argmax(scores, self.subpixel)

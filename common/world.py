@@ -55,7 +55,8 @@ class World:
                 if m.cls != cls:
                     continue
                 p = m.polygon_xy_m
-                if p[:, 0].max() < x0_m or p[:, 0].min() > x1 or p[:, 1].max() < y0_m or p[:, 1].min() > y1:
+                lo, hi = p.min(axis=0), p.max(axis=0)
+                if hi[0] < x0_m or lo[0] > x1 or hi[1] < y0_m or lo[1] > y1:
                     continue
                 # cell centres sample the polygon: shift by half a cell
                 q = (p - [x0_m, y0_m]) * scale - (1 << SUBPIXEL_BITS) * 0.5

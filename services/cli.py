@@ -16,7 +16,8 @@ from services.segtrain.archs import ARCHS
 
 logger = logging.getLogger("roadmap")
 
-WORLD_HELP = "town | town:<km> | lanelet2:PATH | av2:PATH (default: Karlsruhe when ../shared/data exists)"
+WORLD_HELP = ("town | town:<km> | lanelet2:PATH | av2:PATH "
+              "(default: Karlsruhe when ../shared/data exists)")
 
 # subcommand -> "module:function"
 COMMANDS = {
@@ -105,10 +106,12 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--out", default="out")
         if name == "demo":
             p.add_argument("--scenario", choices=["default", "repaint"], default="default")
-            p.add_argument("--chaos", action="store_true", help="kill and restart a shard and a vehicle")
+            p.add_argument("--chaos", action="store_true",
+                           help="kill and restart a shard and a vehicle")
             p.add_argument("--small", action="store_true", help="a short drive (for tests)")
         else:
-            p.add_argument("--listen", default=None, help="router endpoint (default tcp/127.0.0.1:7447)")
+            p.add_argument("--listen", default=None,
+                           help="router endpoint (default tcp/127.0.0.1:7447)")
         _common(p)
 
     p = sub.add_parser("bench", help="benchmark every stage and write bench.json")

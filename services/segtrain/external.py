@@ -70,7 +70,8 @@ def read_rgb(path: Path) -> np.ndarray:
 
 
 def lane_ground_points(labels: np.ndarray, camera: CameraModel) -> np.ndarray:
-    """Lane-line pixels -> ground points (K, 2) in the vehicle frame (x fwd, y left), finite only."""
+    """Lane-line pixels -> ground points (K, 2) in the vehicle frame (x fwd, y left), finite
+    only."""
     v, u = np.nonzero(labels == Cls.LANE_LINE)
     uv = np.stack([u + 0.5, v + 0.5], axis=1).astype(np.float64)
     xy = camera.ground_points(uv) if len(uv) else np.zeros((0, 2))
@@ -153,7 +154,8 @@ def main(argv=None) -> int:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True)
-    parser.add_argument("--data", default=str(Path(__file__).resolve().parents[3] / "shared" / "data"))
+    shared = Path(__file__).resolve().parents[3] / "shared" / "data"
+    parser.add_argument("--data", default=str(shared))
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args(argv)
     configure_logging("INFO")

@@ -160,12 +160,12 @@ def load_onnx_weights(model: nn.Module, path) -> None:
     norm_after = {}
     for seq in model.modules():
         if isinstance(seq, nn.Sequential):
-            for a, b in zip(seq, list(seq)[1:]):
+            for a, b in zip(seq, list(seq)[1:], strict=False):
                 if isinstance(a, nn.Conv2d) and isinstance(b, nn.BatchNorm2d):
                     norm_after[a] = b
     s2 = getattr(model, "subpixel", 1) ** 2
     with torch.no_grad():
-        for node, conv in zip(nodes, convs):
+        for node, conv in zip(nodes, convs, strict=True):
             w = torch.from_numpy(tensors[node.input[1]].copy())
             b = (torch.from_numpy(tensors[node.input[2]].copy()) if len(node.input) > 2
                  else torch.zeros(w.shape[0]))

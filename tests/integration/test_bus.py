@@ -21,7 +21,8 @@ def test_query_reply_through_router(router):
         token = server.liveliness().declare_token("roadmap/alive/test/0")
         time.sleep(0.3)
         replies = list(client.get("roadmap/test/echo", payload=b"hi", timeout=3.0))
-        alive = [str(r.ok.key_expr) for r in client.liveliness().get("roadmap/alive/test/*", timeout=2.0)]
+        tokens = client.liveliness().get("roadmap/alive/test/*", timeout=2.0)
+        alive = [str(r.ok.key_expr) for r in tokens]
         token.undeclare()
         q.undeclare()
     assert [r.ok.payload.to_bytes() for r in replies if r.ok] == [b"ack:hi"]
