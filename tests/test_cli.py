@@ -36,3 +36,14 @@ def test_deploy_advanced_config_lists_the_current_defaults():
 
     path = Path(__file__).resolve().parents[1] / "deploy" / "config" / "advanced.toml"
     assert path.read_text() == render(), "stale: python -m services.demo.configdoc > " + str(path)
+
+
+def test_demo_checks_the_configured_segmentation_model_before_driving(tmp_path):
+    """`demo.segmenter="onnx"` runs segmentation.model_path: a missing file stops the demo at once
+    (exit 1, one line), instead of the packaged model being checked and the fleet failing later."""
+    res = roadmap("demo", "--small", "--out", str(tmp_path / "out"),
+                  "--set", 'demo.segmenter="onnx"',
+                  "--set", f'segmentation.model_path="{tmp_path / "missing.onnx"}"', timeout=60)
+    assert res.returncode == 1, res.stderr[-2000:]
+    assert "segmentation model not found" in res.stderr and "missing.onnx" in res.stderr
+    assert not (tmp_path / "out" / "drives").exists()  # stopped before simulating any drive

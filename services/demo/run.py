@@ -76,9 +76,7 @@ class DemoRun:
     def run(self) -> dict:
         self._prepare_out()
         if self.d.segmenter == "onnx":  # fail now, not after the drives, if the model is missing
-            from common.segmentation import get_segmenter
-
-            get_segmenter("onnx")
+            self._segmenter()
         self.world = self.step("load world", self._load_world)
         logs = self.step("simulate drives", self._simulate)
         with Supervisor(self.out / "logs", config=self.out / "config.toml") as sup:
@@ -391,9 +389,7 @@ class DemoRun:
 
     def _segmentation(self, log_path: Path, n_frames: int = 20) -> dict:
         """IoU of the segmenter the fleet used, on frames of the production drive."""
-        from common.segmentation import get_segmenter
-
-        seg = get_segmenter(self.d.segmenter)
+        seg = self._segmenter()
         log = DriveLog(log_path)
         inter, union, n_true, ms = np.zeros(6), np.zeros(6), np.zeros(6), []
         for i in np.linspace(0, len(log) - 1, min(n_frames, len(log))).astype(int):
@@ -412,6 +408,17 @@ class DemoRun:
                 "ms_p50": float(np.percentile(ms, 50)) if ms else None,
                 "ms_p95": float(np.percentile(ms, 95)) if ms else None,
                 "frames": len(ms)}
+
+    def _segmenter(self):
+        """The segmenter the fleet runs: the configured ONNX model (segmentation.model_path, the
+        packaged one when empty) or the corrupted ground truth."""
+        from common.segmentation import get_segmenter
+
+        if self.d.segmenter == "truth":
+            return get_segmenter("truth")
+        seg = self.cfg.segmentation
+        return get_segmenter("onnx", model_path=seg.model_path,
+                             intra_op_threads=seg.intra_op_threads)
 
     def _mapping_section(self) -> dict:
         s = self.vehicle_summaries
