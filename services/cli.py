@@ -143,6 +143,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--render-only", action="store_true",
                    help="render the training frames into the cache and stop (several training "
                         "runs with the same rendering settings then share them)")
+    p.add_argument("--crop", default="384x224",
+                   help="training windows WxH cut from the 640x360 frames, or full (whole "
+                        "frames: about 2.7x the time per step; default 384x224)")
     p.add_argument("--refine-only", default=None, metavar="MODEL",
                    help="set the paint-border settings of a trained ONNX model (metadata "
                         "`refine`) on the calibration frames of these rendering settings, and "

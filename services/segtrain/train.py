@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from common.classes import MARKINGS, NAMES, NUM_CLASSES, Cls
+from common.errors import ConfigError
 from common.segmentation import META_KEY, OnnxSegmenter, refine_paint_borders
 from services.segtrain import data as seg_data
 from services.segtrain.archs import ARCHS
@@ -24,11 +25,12 @@ from services.segtrain.archs import ARCHS
 logger = logging.getLogger(__name__)
 
 INPUT_SIZE = (640, 360)  # (W, H) of the model input = the camera image (no resize)
-CROP_HW = (224, 384)  # training crops (H, W) from the model-size frames
+CROP_HW = (224, 384)  # training crops (H, W) from the model-size frames (--crop; default)
 BATCH = 8
 LR_MAX = 6e-3
 LR_FINETUNE = 2e-3  # peak learning rate when starting from a trained model (--init)
 THREADS = 2
+DEFAULT_CROP = f"{CROP_HW[1]}x{CROP_HW[0]}"
 TRIM_EVERY = 50  # steps between heap trims (_heap_trimmer)
 
 
@@ -64,9 +66,23 @@ def train_command(args, cfg) -> int:
     train_s = max(minutes * 60.0 - max(render_s, render_budget_s) - 60.0, 60.0)
     result = train_and_export(frames, labels, out, seed=args.seed, train_s=train_s,
                               device=args.device, batch=args.batch, init=args.init,
-                              iou_loss=args.iou_loss, arch=args.arch)
+                              iou_loss=args.iou_loss, arch=args.arch,
+                              crop_hw=crop_size(args.crop, frames.shape[1:3]))
     result["render_s"] = round(render_s, 1)
     return _finish(args, out, result, t_start)
+
+
+def crop_size(text: str, frame_hw) -> tuple[int, int]:
+    """--crop: "WxH" (e.g. 384x224) or "full" (whole frames) -> (H, W) within the frames."""
+    if text == "full":
+        return tuple(int(v) for v in frame_hw)
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ConfigError(f"--crop must be WxH or full, got {text!r}") from None
+    if not (0 < h <= frame_hw[0] and 0 < w <= frame_hw[1]):
+        raise ConfigError(f"--crop {text}: outside the {frame_hw[1]}x{frame_hw[0]} frames")
+    return h, w
 
 
 # Streamed training (--stream): training starts once STREAM_START_FRAMES have arrived, the
@@ -92,7 +108,8 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
         result = train_and_export(frames, labels, out, seed=args.seed, train_s=train_s,
                                   device=args.device, batch=args.batch, init=args.init,
                                   iou_loss=args.iou_loss, arch=args.arch, more=stream.take,
-                                  capacity=args.frames)
+                                  capacity=args.frames,
+                                  crop_hw=crop_size(args.crop, frames.shape[1:3]))
     finally:
         stream.close()
     result["render_s"] = round(render_s, 1)
@@ -113,7 +130,8 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
         + ([f"--arch {args.arch}"] if args.arch != "s" else [])
         + ([f"--init {args.init}"] if args.init else [])
         + ([f"--turn-prob {args.turn_prob:g}"] if args.turn_prob != seg_data.TURN_PROB else [])
-        + ([f"--iou-loss {args.iou_loss:g}"] if args.iou_loss else []))
+        + ([f"--iou-loss {args.iou_loss:g}"] if args.iou_loss else [])
+        + ([f"--crop {args.crop}"] if args.crop != DEFAULT_CROP else []))
     result["total_s"] = round(time.perf_counter() - t_start, 1)
     (out / "train_log.json").write_text(json.dumps(result, indent=2))
     (out / "MODEL_CARD.md").write_text(model_card(result))
@@ -133,13 +151,14 @@ def class_weights(labels: np.ndarray) -> np.ndarray:
 def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
                      device: str = "cpu", batch: int = BATCH, init: str | None = None,
                      iou_loss: float = 0.0, arch: str = "s", more=None,
-                     capacity: int = 0) -> dict:
+                     capacity: int = 0, crop_hw: tuple[int, int] = CROP_HW) -> dict:
     """Train RoadSegNet of size `arch` (archs.ARCHS) for train_s seconds on `device` (cpu: 2
     threads; cuda: the frames live on the GPU), from scratch or, with `init`, from a trained
     model (fine-tuning at LR_FINETUNE; an exported ONNX file's folded batch norms are kept
     frozen), on class-weighted cross-entropy plus `iou_loss` x soft_jaccard_loss; with `more`
     (FrameStream.take) frames keep arriving while it trains, up to `capacity` in all;
-    export to ONNX (on the CPU, auxiliary classes folded into none) and check
+    batches are random `crop_hw` (H, W) windows of the frames (the whole frame when it is the
+    frame's size); export to ONNX (on the CPU, auxiliary classes folded into none) and check
     the export."""
     import torch
 
@@ -183,7 +202,7 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
             y_all[n_loaded:n_loaded + k] = torch.from_numpy(got[1][:k]).to(dev)
             n_loaded += k
         idx = torch.from_numpy(rng.integers(n_val, n_loaded, batch)).to(dev)
-        xb, yb, top = _crop_batch(x_all[idx], y_all[idx], rng)
+        xb, yb, top = _crop_batch(x_all[idx], y_all[idx], rng, crop_hw)
         model.crop_rows = (top, x_all.shape[2])
         xb, yb = augment(xb, yb.long(), rng)
         logits = model(xb)
@@ -227,6 +246,7 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
         "model_bytes": model_path.stat().st_size, "seed": seed, "device": device,
         "batch": batch, "init": init, "lr_max": lr_max, "logit_bias": bias,
         "iou_loss_weight": iou_loss, "arch": arch, "refine": refine,
+        "crop_hw": list(crop_hw),
         "val_iou_town_runtime": val_runtime,
     }
 
@@ -446,11 +466,11 @@ def _lr(frac: float, peak: float = LR_MAX) -> float:
     return peak * (0.02 + 0.98 * 0.5 * (1.0 + math.cos(math.pi * min(p, 1.0))))
 
 
-def _crop_batch(x, y, rng):
-    """Random crops (H, W) = CROP_HW; same window for the whole batch (cheap, still varied).
+def _crop_batch(x, y, rng, crop_hw=CROP_HW):
+    """Random crops (H, W) = crop_hw; same window for the whole batch (cheap, still varied).
     Mostly from the lower part of the frame (the road; the sky is easy), sometimes anywhere.
     -> (images, labels, the crop's top row in the frame)."""
-    h, w = CROP_HW
+    h, w = crop_hw
     span = x.shape[2] - h
     lo = 0 if rng.random() < 0.3 else span // 2
     top = int(rng.integers(lo, span + 1))
@@ -591,7 +611,7 @@ def model_card(result: dict) -> str:
   dropped on 40-100 % of road sides (curb-only edges; 85 % of looks draw curbs), shoulders
   narrowed to none, lane-line widths 0.10-0.16 m and patches of thick 0.2-0.3 m lines, 5-35 %
   of lane-line pieces removed. Training-time augmentation: brightness, contrast, colour cast,
-  gamma, blur, noise, horizontal flips, random {CROP_HW[1]}x{CROP_HW[0]} crops.
+  gamma, blur, noise, horizontal flips, {_crop_text(result)}.
 - **Auxiliary class**: training labels mark raised curbs (their vertical face and top band, from
   the renderers' curb geometry) as a 7th class; the export folds it into none (channel 0 = max
   of none and curb logits at 1/2 resolution), so the model's outputs are our 6 classes. A light
@@ -637,6 +657,13 @@ def _output_text(result: dict, w: int, h: int) -> str:
     return (f"float32 [1, 6, {h // 2}, {w // 2}] (1/2 of the input); OnnxSegmenter upsamples "
             f"them bilinearly to {w}x{h} (half-pixel centres, as torch's align_corners=False) "
             "and takes the argmax over axis 1")
+
+
+def _crop_text(result: dict) -> str:
+    h, w = result.get("crop_hw", CROP_HW)
+    if (w, h) == INPUT_SIZE:
+        return f"whole {w}x{h} frames (no crops)"
+    return f"random {w}x{h} crops"
 
 
 def _iou_text(result: dict) -> str:

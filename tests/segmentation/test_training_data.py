@@ -2,8 +2,10 @@
 
 import cv2
 import numpy as np
+import pytest
 
 from common.classes import Cls
+from common.errors import ConfigError
 from common.segmentation import argmax_channels
 from services.segtrain.data import _strip_halves, restyled
 from services.sim.worlds import load_world
@@ -140,3 +142,23 @@ def test_streamed_chunks_are_the_training_set_in_order_and_stopping_leaves_nothi
     assert np.array_equal(got_f, want_f[order]) and np.array_equal(got_l, want_l[order])
     assert not stream._dir.exists()
     assert not any(proc.is_alive() for proc in stream._procs)
+
+
+def test_training_crops_are_windows_of_the_frames_or_the_whole_frame():
+    from services.segtrain.train import _crop_batch, crop_size
+
+    assert crop_size("384x224", (360, 640)) == (224, 384)
+    assert crop_size("full", (360, 640)) == (360, 640)
+    for bad in ("700x100", "384", "wide"):
+        with pytest.raises(ConfigError, match="--crop"):
+            crop_size(bad, (360, 640))
+    rng = np.random.default_rng(0)
+    x = np.arange(2 * 3 * 360 * 640).reshape(2, 3, 360, 640)
+    y = x[:, 0] % 7
+    xb, yb, top = _crop_batch(x, y, rng, (360, 640))
+    assert top == 0 and np.array_equal(xb, x) and np.array_equal(yb, y)
+    xb, yb, top = _crop_batch(x, y, rng, (224, 384))
+    assert xb.shape == (2, 3, 224, 384) and yb.shape == (2, 224, 384)
+    left = int(xb[0, 0, 0, 0]) - top * 640  # x holds each pixel's flat index
+    assert np.array_equal(xb, x[:, :, top:top + 224, left:left + 384])
+    assert np.array_equal(yb, y[:, top:top + 224, left:left + 384])
