@@ -589,8 +589,8 @@ def model_card(result: dict) -> str:
 - **Input** `image`: float32 [1, 3, {h}, {w}] (N, C, H, W), RGB, value = pixel / 255
   (no mean/std: mean 0, std 1). {w}x{h} is the camera's own size: frames of the default
   camera go in unresized (other sizes are resized with cv2.INTER_AREA).
-- **Output** `logits`: {_output_text(result, w, h)}, then resizes the labels to the frame
-  size (nearest). The
+- **Output** `logits`: {_output_text(result, w, h)}, re-decides the paint borders on the image
+  (below), then resizes the labels to the frame size (nearest). The
   same settings are stored in the model's metadata (`roadmap.segmentation`), so
   `OnnxSegmenter()` needs no arguments.
 - **Network**: RoadSegNet (services/segtrain/net.py): 4x4 stride-2 stem on the full-resolution
