@@ -21,6 +21,7 @@ from common.errors import ConfigError
 from common.segmentation import META_KEY, OnnxSegmenter, refine_paint_borders
 from services.segtrain import data as seg_data
 from services.segtrain.archs import ARCHS
+from services.segtrain.evaluate import IouAccumulator
 
 logger = logging.getLogger(__name__)
 
@@ -382,10 +383,12 @@ def calibrate_refine(model_path, frames: np.ndarray, labels: np.ndarray) -> dict
     grays = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
 
     def score(settings):
-        preds = [refine_paint_borders(g, p, **settings) if settings else p
-                 for g, p in zip(grays, raw, strict=True)]
-        ious = paint_iou(preds, labels)
-        return float(np.mean(list(ious.values()))) if ious else 0.0
+        acc = IouAccumulator()
+        for g, p, truth in zip(grays, raw, labels, strict=True):
+            acc.add(refine_paint_borders(g, p, **settings) if settings else p, truth)
+        ious = [v for name, v in acc.result().items()
+                if v is not None and name in {NAMES[c] for c in MARKINGS}]
+        return float(np.mean(ious)) if ious else 0.0
 
     best, best_score = {}, score({})
     for window in REFINE_WINDOWS:
@@ -397,27 +400,13 @@ def calibrate_refine(model_path, frames: np.ndarray, labels: np.ndarray) -> dict
 
 
 def runtime_iou(model_path, frames: np.ndarray, labels: np.ndarray) -> dict:
-    """Per-class IoU of the exported model as OnnxSegmenter segments (its metadata's settings)
-    on town frames at the model's input size."""
+    """Per-class IoU (None: absent from the truth) of the exported model as OnnxSegmenter
+    segments (its metadata's settings) on town frames at the model's input size."""
     seg = OnnxSegmenter(model_path)
-    return paint_iou([seg.segment_model_size(f) for f in frames], labels, classes=list(Cls)[1:])
-
-
-def paint_iou(preds, truths, classes=MARKINGS) -> dict:
-    """{name: IoU} pooled over frames, for the classes present in the truth (auxiliary
-    training classes count as none)."""
-    n = NUM_CLASSES
-    confusion = np.zeros(n * n, np.int64)
-    for pred, truth in zip(preds, truths, strict=True):
-        truth = np.where(truth >= n, 0, truth).astype(np.int64)
-        confusion += np.bincount((truth * n + pred).ravel(), minlength=n * n)
-    confusion = confusion.reshape(n, n)  # [truth, pred]
-    out = {}
-    for c in classes:
-        inter, true = confusion[c, c], confusion[c].sum()
-        if true:
-            out[NAMES[c]] = round(float(inter / (true + confusion[:, c].sum() - inter)), 4)
-    return out
+    acc = IouAccumulator()
+    for frame, truth in zip(frames, labels, strict=True):
+        acc.add(seg.segment_model_size(frame), truth)
+    return acc.result()
 
 
 def set_metadata(path, **updates) -> None:
