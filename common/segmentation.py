@@ -202,7 +202,11 @@ class OnnxSegmenter(Segmenter):
         sub-pixel logits (metadata `subpixel`): labels at the input size, resized to out_size
         (nearest) when one is given. Then the paint borders are re-decided on the image
         (`refine`, refine_paint_borders) when the model's settings ask for it."""
-        outs = self._session.run(self.priority, {self._input_name: self.preprocess(image_rgb)})
+        w, h = self.input_size
+        small = image_rgb  # resized once, for the network and the refinement
+        if small.shape[:2] != (h, w):
+            small = cv2.resize(small, (w, h), interpolation=cv2.INTER_AREA)
+        outs = self._session.run(self.priority, {self._input_name: self.preprocess(small)})
         labels = None
         for head, logits in zip(self.priority, outs, strict=True):
             scores = logits[0]
@@ -229,10 +233,9 @@ class OnnxSegmenter(Segmenter):
                 labels = np.where(mapped > 0, mapped, labels)
         labels = labels.astype(np.uint8)
         if self.refine:
-            h, w = labels.shape
-            img = image_rgb
-            if img.shape[:2] != (h, w):
-                img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
+            img = small if labels.shape == (h, w) else image_rgb
+            if img.shape[:2] != labels.shape:  # labels at an out_size other than the frame's
+                img = cv2.resize(img, labels.shape[::-1], interpolation=cv2.INTER_AREA)
             labels = refine_paint_borders(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), labels,
                                           **self.refine)
         return labels
