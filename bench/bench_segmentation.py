@@ -6,8 +6,12 @@
 
 Frames: the simulator's renderer at seeded random poses on the world's routes (30 % facing a stop
 line, crosswalk or sign), default camera with 0.3 deg vibration, a new look every 10 frames;
-and, as `stop_facing`, as many Karlsruhe frames that all face one of its stop lines (the route
-frames show too few to measure the stop line: services/segtrain/evaluate.py FacingPoses).
+as `stop_facing`, as many Karlsruhe frames that all face one of its stop lines (the route
+frames show too few to measure the stop line: services/segtrain/evaluate.py FacingPoses); and,
+as `sign_facing`, a third as many frames per world, each facing a ground sign 4-20 m ahead.
+None of these worlds has ground signs in its map, so arrows and road text are painted in their
+lanes for those frames (evaluate.py with_ground_signs: the towns' glyph shapes, words no town
+paints); the route frames stay as the maps draw them.
 IoU per class = sum of intersections / sum of unions over all frames of a world, at the camera's
 full resolution (labels resized back from the model's input size), and also inside the IPM ROI
 (the pixels the mapper actually uses), each with a 90 % bootstrap interval over the frames
@@ -154,6 +158,16 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
             seg, worlds[0][1], frames=10 if quick else frames, seed=1, rng=rng,
             facing=Cls.STOP_LINE, baseline=baseline, paired_rng=paired_rng)
         report["stop_facing"]["world"] = "karlsruhe"
+    signs, sign_draws = {}, {}
+    for name, spec in worlds[:2] if quick else worlds:  # no world has signs: some are painted
+        logger.info("rendering and segmenting %s frames facing ground signs", name)
+        signs[name], sign_draws[name], _ = evaluate_world(
+            seg, spec, frames=10 if quick else max(frames // 3, 10), seed=1, rng=rng,
+            facing=Cls.GROUND_SIGN, baseline=baseline, paired_rng=paired_rng)
+    if signs:
+        report["sign_facing"] = {"iou": _mean_over_worlds(signs, "iou"),
+                                 "iou_ci90": bootstrap_interval(_means_of_draws(sign_draws)),
+                                 "iou_roi": _mean_over_worlds(signs, "iou_roi"), "worlds": signs}
     if baseline is not None:  # the model minus the baseline, on the same frames
         base_iou = _mean_over_worlds(
             {w: {"iou": e["baseline"]["iou"]} for w, e in report["worlds"].items()}, "iou")
@@ -203,6 +217,7 @@ def main(argv=None) -> int:
     (out / "segmentation.json").write_text(json.dumps(report, indent=2))
     shown = {k: report[k] for k in ("iou", "iou_roi", "speed")}
     shown["stop_facing"] = report.get("stop_facing", {}).get("iou")
+    shown["sign_facing"] = report.get("sign_facing", {}).get("iou")
     if "baseline" in report:
         shown["minus_baseline"] = report["baseline"]["diff"]
         shown["minus_baseline_ci90"] = report["baseline"]["diff_ci90"]

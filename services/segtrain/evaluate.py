@@ -6,6 +6,9 @@ import numpy as np
 from common.classes import NAMES, Cls
 
 CLASSES = (Cls.ROAD, Cls.LANE_LINE, Cls.STOP_LINE, Cls.CROSSWALK, Cls.GROUND_SIGN)
+# Words of the road text added to held-out worlds: none of them is painted in the training towns
+# (services/sim/town.py TEXTS).
+HELDOUT_TEXTS = ("BUS", "SLOW", "STOP", "ONLY")
 
 
 def render_heldout(spec: str, *, frames: int, seed: int, rare_prob: float = 0.3,
@@ -14,7 +17,9 @@ def render_heldout(spec: str, *, frames: int, seed: int, rare_prob: float = 0.3,
     seeded random poses on its routes (a share of them facing stop lines, crosswalks or signs),
     through the default camera with vibration (0.3 deg), with random lead / parked cars;
     -> (pairs, nominal camera). With `facing`, every pose faces a marking of that class instead
-    (`FacingPoses`: the world's routes pass few of its stop lines)."""
+    (`FacingPoses`: the world's routes pass few of its stop lines); facing Cls.GROUND_SIGN, the
+    world first gets signs painted in its lanes (`with_ground_signs`: the benchmark worlds have
+    none)."""
     from common.camera import camera_from_config
     from common.config import CameraConfig
     from services.segtrain.data import random_cars
@@ -25,7 +30,12 @@ def render_heldout(spec: str, *, frames: int, seed: int, rare_prob: float = 0.3,
     rng = np.random.default_rng(seed)
     world = load_world(spec, seed)
     camera = camera_from_config(CameraConfig())
-    facing_poses = FacingPoses(world, facing) if facing is not None else None
+    facing_poses = None
+    if facing == Cls.GROUND_SIGN:
+        world, anchors = with_ground_signs(world, seed)
+        facing_poses = FacingPoses(world, facing, anchors=anchors)
+    elif facing is not None:
+        facing_poses = FacingPoses(world, facing)
     pairs = []
     for start in range(0, frames, 10):  # a new look (renderer seed) every 10 frames
         renderer = FrameRenderer(world, camera, seed=int(rng.integers(2**31)))
@@ -47,16 +57,22 @@ class FacingPoses:
     from either side (a stop line is also passed from behind), shifted along the marking and
     turned by a few degrees. The Karlsruhe world's routes face only 4 of its 28 stop lines, and
     61 of 300 route frames show one (55 % of their pixels in 2 frames): too few to measure. These
-    poses reach every marking with road before it (13 of the 28)."""
+    poses reach every marking with road before it (13 of the 28). With `anchors` ((x, y, yaw) of
+    markings read along the driving direction: ground signs), the poses stand behind each anchor
+    on its lane instead, shifted sideways by up to 0.3 m."""
 
     CELL_M = 0.1  # road lookup raster
 
-    def __init__(self, world, cls: Cls, near_m: float = 4.0, far_m: float = 20.0):
+    def __init__(self, world, cls: Cls, near_m: float = 4.0, far_m: float = 20.0,
+                 anchors: list[tuple[float, float, float]] | None = None):
         self.near_m, self.far_m = near_m, far_m
         self._road, self._x0, self._y0 = world.rasterize_all(2.0, self.CELL_M)
         self.options = []  # (centre, long axis, normal towards the camera, half length)
+        for x, y, yaw in anchors or ():
+            ahead = np.array([np.cos(yaw), np.sin(yaw)])
+            self.options.append((np.array([x, y]), np.array([-ahead[1], ahead[0]]), -ahead, 0.5))
         for m in world.markings:
-            if m.cls != cls:
+            if m.cls != cls or anchors is not None:
                 continue
             centre = m.polygon_xy_m.mean(axis=0)
             axes = np.linalg.eigh(np.cov((m.polygon_xy_m - centre).T))[1]
@@ -86,6 +102,82 @@ class FacingPoses:
                 yaw = float(np.arctan2(-side[1], -side[0]) + rng.normal(0.0, np.radians(5.0)))
                 return float(xy[0]), float(xy[1]), yaw
         raise RuntimeError("no road pose found before the markings")
+
+
+def with_ground_signs(world, seed: int, spacing_m: float = 30.0, margin_m: float = 0.3):
+    """The world with turn arrows and road text painted in its lanes, and each sign's (x, y,
+    yaw: the way its arrow points) -> (world, anchors).
+
+    Neither the Karlsruhe nor the Argoverse 2 maps have ground signs, so the benchmark paints
+    some to measure that class on held-out scenes. Candidate places: the routes (lane centre
+    lines) every 10 m, then beside each lane-line piece at least 2 m long, 1.6-1.9 m to either
+    side (mid-lane), pointing either way along it; in a seeded random order. A glyph (70 % one
+    of the three arrows scaled 0.85-1.15, 30 % a word of HELDOUT_TEXTS) goes where it and
+    `margin_m` around it lie on bare road (no paint, no sign placed before), at least
+    `spacing_m` from every other sign. The arrows are the towns' shapes (services/sim/paint.py)
+    and the words are drawn in the towns' font: what this measures is the model on scenes, looks
+    and surroundings it never saw, not on glyph shapes it never saw."""
+    import dataclasses
+
+    import cv2
+
+    from common.world import World
+    from services.sim import paint
+
+    rng = np.random.default_rng([seed, 0x516E])
+    candidates = []  # (x, y, yaw)
+    for route in world.routes:
+        s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(route, axis=0).T))])
+        for at in np.arange(5.0, s[-1] - 5.0, 10.0):
+            k = int(np.clip(np.searchsorted(s, at), 1, len(route) - 1))
+            d = route[k] - route[k - 1]
+            candidates.append((np.interp(at, s, route[:, 0]), np.interp(at, s, route[:, 1]),
+                               float(np.arctan2(d[1], d[0]))))
+    for m in world.markings:
+        if m.cls != Cls.LANE_LINE or len(m.polygon_xy_m) < 3:
+            continue
+        centre = m.polygon_xy_m.mean(axis=0)
+        along = np.linalg.eigh(np.cov((m.polygon_xy_m - centre).T))[1][:, 1]
+        if np.ptp((m.polygon_xy_m - centre) @ along) < 2.0:
+            continue
+        yaw = float(np.arctan2(along[1], along[0]))
+        for side in (-1.0, 1.0):
+            xy = centre + side * rng.uniform(1.6, 1.9) * np.array([-along[1], along[0]])
+            candidates.append((xy[0], xy[1], yaw + (np.pi if rng.random() < 0.5 else 0.0)))
+    cell = FacingPoses.CELL_M
+    labels, x0, y0 = world.rasterize_all(4.0, cell)
+    grow = int(np.ceil(margin_m / cell))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1))
+    signs, anchors = [], []
+    for i in rng.permutation(len(candidates)):
+        x, y, yaw = candidates[i]
+        if anchors and np.hypot(*(np.array(anchors)[:, :2] - [x, y]).T).min() < spacing_m:
+            continue
+        if rng.random() < 0.7:
+            kind = ("arrow_straight", "arrow_left", "arrow_right")[int(rng.integers(3))]
+            glyph = [paint.arrow(kind, x, y, yaw, scale=float(rng.uniform(0.85, 1.15)))]
+        else:
+            word = HELDOUT_TEXTS[int(rng.integers(len(HELDOUT_TEXTS)))]
+            glyph = paint.text_block(word, x, y, yaw)
+        pts = np.concatenate([g.polygon_xy_m for g in glyph])
+        c0 = int(np.floor((pts[:, 0].min() - x0) / cell)) - grow - 1
+        r0 = int(np.floor((pts[:, 1].min() - y0) / cell)) - grow - 1
+        c1 = int(np.ceil((pts[:, 0].max() - x0) / cell)) + grow + 1
+        r1 = int(np.ceil((pts[:, 1].max() - y0) / cell)) + grow + 1
+        if r0 < 0 or c0 < 0 or r1 > labels.shape[0] or c1 > labels.shape[1]:
+            continue
+        mask = World("sign", glyph).rasterize(x0 + c0 * cell, y0 + r0 * cell, r1 - r0, c1 - c0,
+                                              cell) > 0
+        footprint = cv2.dilate(mask.astype(np.uint8), kernel) > 0
+        window = labels[r0:r1, c0:c1]
+        if not mask.any() or (window[footprint] != Cls.ROAD).any():
+            continue
+        window[footprint] = Cls.GROUND_SIGN
+        signs += glyph
+        anchors.append((float(x), float(y), float(yaw)))
+    if not anchors:
+        raise ValueError(f"{world.name}: no bare road for a ground sign")
+    return dataclasses.replace(world, markings=list(world.markings) + signs), anchors
 
 
 class IouAccumulator:
