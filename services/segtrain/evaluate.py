@@ -9,6 +9,10 @@ CLASSES = (Cls.ROAD, Cls.LANE_LINE, Cls.STOP_LINE, Cls.CROSSWALK, Cls.GROUND_SIG
 # Words of the road text added to held-out worlds: none of them is painted in the training towns
 # (services/sim/town.py TEXTS).
 HELDOUT_TEXTS = ("BUS", "SLOW", "STOP", "ONLY")
+# Arrows added to held-out worlds, each drawn as the union of the towns' arrow glyphs: the
+# straight-and-turn arrows are shapes no training town paints.
+HELDOUT_ARROWS = (("arrow_straight",), ("arrow_left",), ("arrow_right",),
+                  ("arrow_straight", "arrow_left"), ("arrow_straight", "arrow_right"))
 
 
 def render_heldout(spec: str, *, frames: int, seed: int, rare_prob: float = 0.3,
@@ -112,11 +116,11 @@ def with_ground_signs(world, seed: int, spacing_m: float = 30.0, margin_m: float
     some to measure that class on held-out scenes. Candidate places: the routes (lane centre
     lines) every 10 m, then beside each lane-line piece at least 2 m long, 1.6-1.9 m to either
     side (mid-lane), pointing either way along it; in a seeded random order. A glyph (70 % one
-    of the three arrows scaled 0.85-1.15, 30 % a word of HELDOUT_TEXTS) goes where it and
+    of HELDOUT_ARROWS scaled 0.85-1.15, 30 % a word of HELDOUT_TEXTS) goes where it and
     `margin_m` around it lie on bare road (no paint, no sign placed before), at least
-    `spacing_m` from every other sign. The arrows are the towns' shapes (services/sim/paint.py)
-    and the words are drawn in the towns' font: what this measures is the model on scenes, looks
-    and surroundings it never saw, not on glyph shapes it never saw."""
+    `spacing_m` from every other sign. Words no town paints and straight-and-turn arrows no town
+    paints, but the towns' font and single arrows (services/sim/paint.py): this measures the
+    model mostly on scenes, looks and surroundings it never saw, less on glyphs it never saw."""
     import dataclasses
 
     import cv2
@@ -154,8 +158,9 @@ def with_ground_signs(world, seed: int, spacing_m: float = 30.0, margin_m: float
         if anchors and np.hypot(*(np.array(anchors)[:, :2] - [x, y]).T).min() < spacing_m:
             continue
         if rng.random() < 0.7:
-            kind = ("arrow_straight", "arrow_left", "arrow_right")[int(rng.integers(3))]
-            glyph = [paint.arrow(kind, x, y, yaw, scale=float(rng.uniform(0.85, 1.15)))]
+            kinds = HELDOUT_ARROWS[int(rng.integers(len(HELDOUT_ARROWS)))]
+            scale = float(rng.uniform(0.85, 1.15))
+            glyph = [paint.arrow(kind, x, y, yaw, scale=scale) for kind in kinds]
         else:
             word = HELDOUT_TEXTS[int(rng.integers(len(HELDOUT_TEXTS)))]
             glyph = paint.text_block(word, x, y, yaw)
