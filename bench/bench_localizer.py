@@ -146,7 +146,9 @@ def sim_accuracy(
 ) -> dict:
     """`roadmap localize` on a simulated production drive against the ground-truth map.
     gnss_bias_m: the std per axis of the consumer GNSS's slowly varying bias (production
-    profile: 1.6 m); the result then also says how far off the GNSS was at the first frame."""
+    profile: 1.6 m); the result then also says how far off the GNSS was at the first frame.
+    With `localizer.segmenter="onnx"` among `sets`, the drive is rendered and the car segments
+    its camera frames with the ONNX model: a perfect map, the model's errors in the car only."""
     import argparse as _ap
     import subprocess
     from dataclasses import replace
@@ -166,8 +168,10 @@ def sim_accuracy(
     noise = None
     if gnss_bias_m is not None:
         noise = replace(sensors.PROFILES["production"], gnss_bias_m=float(gnss_bias_m))
+    cfg = load_config(sets=list(sets))
     logs = simulate_drives(
-        w, out / "logs", profile="production", images=False, max_km=km, seed=seed, noise=noise
+        w, out / "logs", profile="production", images=cfg.localizer.segmenter == "onnx",
+        max_km=km, seed=seed, noise=noise,
     )
     streams = DriveLog(logs[0]).streams
     first_fix = int(np.flatnonzero(streams["gnss_ok"])[0])
