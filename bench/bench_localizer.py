@@ -168,7 +168,7 @@ def sim_accuracy(
     noise = None
     if gnss_bias_m is not None:
         noise = replace(sensors.PROFILES["production"], gnss_bias_m=float(gnss_bias_m))
-    cfg = load_config(sets=list(sets))
+    cfg = load_config(sets=[f'localizer.map_codec="{codec_name}"', *sets])
     logs = simulate_drives(
         w, out / "logs", profile="production", images=cfg.localizer.segmenter == "onnx",
         max_km=km, seed=seed, noise=noise,
@@ -199,9 +199,7 @@ def sim_accuracy(
                         q.reply(q.key_expr, codec.encode(msg))
 
                 server.declare_queryable(keys.tile(*tile), on_query, complete=True)
-            cfg = load_config(
-                sets=[f'bus.connect=["{endpoint}"]', f'localizer.map_codec="{codec_name}"', *sets]
-            )
+            cfg = replace(cfg, bus=replace(cfg.bus, connect=[endpoint]))
             localize(_ap.Namespace(log=str(logs[0]), out=str(out / "accuracy"), id=None), cfg)
     finally:
         router.terminate()

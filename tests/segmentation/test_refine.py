@@ -117,4 +117,3 @@ def test_calibration_keeps_labels_that_need_no_refinement(tmp_path):
     assert seg.refine == found
     meta = json.loads(seg._session.get_modelmeta().custom_metadata_map["roadmap.segmentation"])
     assert meta["input_size"] == [640, 360]  # the other keys kept
-
