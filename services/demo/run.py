@@ -418,7 +418,8 @@ class DemoRun:
             return get_segmenter("truth")
         seg = self.cfg.segmentation
         return get_segmenter("onnx", model_path=seg.model_path,
-                             intra_op_threads=seg.intra_op_threads)
+                             intra_op_threads=seg.intra_op_threads,
+                             min_margin=self.cfg.vehicle.paint_min_margin)
 
     def _mapping_section(self) -> dict:
         s = self.vehicle_summaries

@@ -131,7 +131,8 @@ class _FrameSource:
         else:
             seg = cfg.segmentation
             self.segmenter = get_segmenter(
-                "onnx", model_path=seg.model_path, intra_op_threads=seg.intra_op_threads
+                "onnx", model_path=seg.model_path, intra_op_threads=seg.intra_op_threads,
+                min_margin=lc.paint_min_margin,
             )
         self.segmenter_name = getattr(self.segmenter, "name", lc.segmenter)
 

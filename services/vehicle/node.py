@@ -60,7 +60,8 @@ def _segmenter(log: DriveLog, cfg: RoadmapConfig, kind: str | None):
         return GroundTruthSegmenter(seed=cfg.vehicle.truth_seed)
     seg = cfg.segmentation
     extra = {"model_path": seg.model_path} if seg.model_path else {}
-    return get_segmenter("onnx", intra_op_threads=seg.intra_op_threads, **extra)
+    return get_segmenter("onnx", intra_op_threads=seg.intra_op_threads,
+                         min_margin=cfg.vehicle.paint_min_margin, **extra)
 
 
 # -- replay ------------------------------------------------------------------------------------

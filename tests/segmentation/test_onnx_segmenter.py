@@ -97,3 +97,40 @@ def test_bilinear_upsampling_agrees_with_nearest_on_most_pixels(rng):
     assert (smooth == nearest).mean() > 0.9
     with pytest.raises(ConfigError):
         OnnxSegmenter(upsample="cubic")
+
+
+def test_unsure_paint_becomes_unknown_and_confident_paint_stays():
+    from common.segmentation import _unsure_paint_unknown
+
+    # 4 pixels, 6 classes: a sure lane line, an unsure lane line (lead 0.5), an unsure road
+    # pixel (road is never dropped), a crosswalk leading by exactly the margin
+    scores = np.zeros((6, 1, 4), np.float32)
+    scores[Cls.LANE_LINE, 0, 0], scores[Cls.ROAD, 0, 0] = 5.0, 1.0
+    scores[Cls.LANE_LINE, 0, 1], scores[Cls.STOP_LINE, 0, 1] = 3.0, 2.5
+    scores[Cls.ROAD, 0, 2], scores[Cls.LANE_LINE, 0, 2] = 1.1, 1.0
+    scores[Cls.CROSSWALK, 0, 3], scores[Cls.NONE, 0, 3] = 2.0, 0.0
+    labels = scores.argmax(axis=0).astype(np.uint8)
+    out = _unsure_paint_unknown(scores, labels.copy(), 2.0)
+    assert out.tolist() == [[Cls.LANE_LINE, Cls.NONE, Cls.ROAD, Cls.CROSSWALK]]
+
+
+@needs_model
+def test_min_margin_drops_exactly_the_marking_pixels_the_model_is_unsure_of():
+    import cv2
+
+    from tests.segmentation.test_refine import _road_with_lines
+
+    image = _road_with_lines()
+    image[300:, 380:470] = (150, 150, 140)  # a light patch beside a line: something to doubt
+    plain = OnnxSegmenter(refine={}).segment(image)
+    gated_seg = OnnxSegmenter(refine={}, min_margin=2.0)
+    gated = gated_seg.segment(image)
+    # the margin from the raw logits, upsampled as the runtime does
+    (logits,) = gated_seg._session.run(None, {"image": gated_seg.preprocess(image)})
+    up = np.stack([cv2.resize(c, (640, 360), interpolation=cv2.INTER_LINEAR) for c in logits[0]])
+    top2 = np.sort(up, axis=0)[-2:]
+    unsure = (plain >= Cls.LANE_LINE) & (top2[1] - top2[0] < 2.0)
+    assert (plain >= Cls.LANE_LINE).sum() > 500 and unsure.sum() > 20
+    np.testing.assert_array_equal(gated, np.where(unsure, Cls.NONE, plain))
+    with pytest.raises(ConfigError, match="min_margin"):
+        OnnxSegmenter(min_margin=-1.0)

@@ -4,10 +4,11 @@ import numpy as np
 import pytest
 
 from common.camera import build_ipm_lookup
-from common.drivelog import DriveLog
-from common.segmentation import GroundTruthSegmenter
+from common.config import load_config
+from common.drivelog import STREAM_KEYS, DriveLog, DriveLogMeta, DriveLogWriter
+from common.segmentation import DEFAULT_MODEL, GroundTruthSegmenter
 from services.vehicle.mapper import VehicleMapper
-from services.vehicle.node import StageTimer, map_log
+from services.vehicle.node import StageTimer, _segmenter, map_log
 from services.vehicle.quality import local_map_quality
 from tests.vehicle.synthetic import mapping_camera, write_drive_log
 
@@ -75,3 +76,19 @@ def test_points_are_committed_with_optimized_poses(mapped):
     assert np.linalg.norm(poses[:, :2] - truth[:, :2], axis=1).mean() < 0.05
     assert len({p.patch_id for p in patches}) == len(patches)
     assert sum(int(p.votes.sum()) for p in patches) == int(mapper.grid.items()[1].astype(int).sum())
+
+
+@pytest.mark.skipif(not DEFAULT_MODEL.is_file(), reason="no packaged model")
+def test_the_fleet_votes_only_paint_its_model_is_sure_of(tmp_path):
+    """vehicle.paint_min_margin reaches the ONNX segmenter the mapper runs (localizer: its own)."""
+    meta = DriveLogMeta(vehicle="map-0", traversal="t0", profile="mapping",
+                        world={"name": "x", "origin_lat": 0.0, "origin_lon": 0.0},
+                        camera=mapping_camera(), notes={})
+    writer = DriveLogWriter(tmp_path / "log", meta)
+    writer.write_frame(0, np.full((360, 640, 3), 90, np.uint8), None)
+    writer.close({k: np.zeros(1) for k in STREAM_KEYS})
+    log = DriveLog(tmp_path / "log")
+    assert _segmenter(log, load_config(env={}), "onnx").min_margin == 1.0
+    cfg = load_config(env={}, sets=["vehicle.paint_min_margin=0.5"])
+    assert _segmenter(log, cfg, "onnx").min_margin == 0.5
+    assert cfg.localizer.paint_min_margin == 0.0
