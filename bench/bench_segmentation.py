@@ -17,7 +17,9 @@ full resolution (labels resized back from the model's input size), and also insi
 (the pixels the mapper actually uses), each with a 90 % bootstrap interval over the frames
 (`iou_ci90`; for the mean over worlds, each world's frames redrawn). Speed: p50/p95 ms of one
 forward pass + argmax at the model's input size with one onnxruntime thread, and of the whole
-`segment()` call at full size. With `--baseline`, a second model is scored on the same frames,
+`segment()` call at full size. `paint_gate`: precision and recall in the ROI of the model as
+the mapping vehicles run it (paint it is unsure of left unknown: vehicle.paint_min_margin)
+against the plain argmax, per world and their mean. With `--baseline`, a second model is scored on the same frames,
 and `baseline.diff` (and each world's) is the model's IoU minus the baseline's, with a paired
 bootstrap interval (`diff_ci90`: both scored on each draw of frames), to compare two training
 recipes far more finely than their own intervals allow. That interval covers the frames, not the
@@ -40,7 +42,7 @@ sys.path.insert(0, str(REPO))
 
 from common.camera import build_ipm_lookup  # noqa: E402
 from common.classes import NAMES, Cls  # noqa: E402
-from common.config import RoiConfig  # noqa: E402
+from common.config import RoiConfig, VehicleConfig  # noqa: E402
 from common.segmentation import DEFAULT_MODEL, get_segmenter  # noqa: E402
 from services.segtrain.evaluate import (  # noqa: E402
     CLASSES,
@@ -72,28 +74,35 @@ def heldout_worlds() -> list[tuple[str, str]]:
 
 
 def evaluate_world(seg, spec: str, *, frames: int, seed: int, rng, facing: Cls | None = None,
-                   baseline=None, paired_rng=None) -> tuple[dict, list[dict], list[dict] | None]:
+                   baseline=None, paired_rng=None,
+                   gated=None) -> tuple[dict, list[dict], list[dict] | None]:
     """The world's report entry, DRAWS bootstrap results of its full-frame IoU, and with a
     `baseline` segmenter, DRAWS paired bootstrap results (drawn with `paired_rng`, so that the
     model's own draws do not depend on whether a baseline is given) of seg's IoU minus the
-    baseline's."""
+    baseline's. With `gated` (the model as the mapping vehicles run it: unsure paint left
+    unknown), `paint_gate` holds the ROI precision and recall of both."""
     pairs, camera = render_heldout(spec, frames=frames, seed=seed, facing=facing)
     roi = RoiConfig()
     ipm = build_ipm_lookup(camera, x_min_m=roi.x_min_m, length_m=roi.length_m, width_m=roi.width_m)
     roi_mask = np.zeros(camera.width * camera.height, bool)
     roi_mask[ipm.pixel_index] = True
     roi_mask = roi_mask.reshape(camera.height, camera.width)
-    full, in_roi, base = IouAccumulator(), IouAccumulator(), IouAccumulator()
+    full, in_roi, base, gate = (IouAccumulator() for _ in range(4))
     for rgb, truth in pairs:
         pred = seg.segment(rgb)
         full.add(pred, truth)
         in_roi.add(pred, truth, roi_mask)
         if baseline is not None:
             base.add(baseline.segment(rgb), truth)
+        if gated is not None:
+            gate.add(gated.segment(rgb), truth, roi_mask)
     draws = full.draws(DRAWS, rng)
     entry = {"frames": len(pairs), "iou": full.result(), "iou_ci90": bootstrap_interval(draws),
              "iou_roi": in_roi.result(), "iou_roi_ci90": in_roi.interval(DRAWS),
              "true_pixels": {NAMES[c]: full.true_px[c] for c in CLASSES}}
+    if gated is not None:
+        entry["paint_gate"] = {"min_margin": gated.min_margin, "roi": gate.precision_recall(),
+                               "roi_plain": in_roi.precision_recall()}
     if baseline is None:
         return entry, draws, None
     paired = full.draws(DRAWS, paired_rng, minus=base)
@@ -132,6 +141,9 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
     import onnxruntime
 
     seg = get_segmenter("onnx", model_path=model_path, intra_op_threads=1)
+    # the model as the mapping vehicles run it: paint it is unsure of left unknown
+    gated = get_segmenter("onnx", model_path=model_path, intra_op_threads=1,
+                          min_margin=VehicleConfig().paint_min_margin)
     baseline = (get_segmenter("onnx", model_path=baseline_path, intra_op_threads=1,
                               **({"refine": {}} if baseline_unrefined else {}))
                 if baseline_path else None)
@@ -148,8 +160,15 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
         logger.info("rendering and segmenting %s", name)
         report["worlds"][name], draws[name], paired[name] = evaluate_world(
             seg, spec, frames=10 if quick else frames, seed=1, rng=rng, baseline=baseline,
-            paired_rng=paired_rng)
+            paired_rng=paired_rng, gated=gated)
     report["iou"] = _mean_over_worlds(report["worlds"], "iou")
+    report["paint_gate"] = {
+        "min_margin": gated.min_margin,
+        **{key: {name: {m: _mean([e["paint_gate"][key][name][m]
+                                  for e in report["worlds"].values()])
+                        for m in ("precision", "recall")}
+                 for name in TARGETS}
+           for key in ("roi", "roi_plain")}}
     report["iou_ci90"] = bootstrap_interval(_means_of_draws(draws))
     report["iou_roi"] = _mean_over_worlds(report["worlds"], "iou_roi")
     if worlds and worlds[0][0] == "karlsruhe":  # the only world with stop lines
@@ -195,6 +214,11 @@ def _mean_over_worlds(worlds: dict, key: str) -> dict:
         vals = [w[key][NAMES[c]] for w in worlds.values() if w[key][NAMES[c]] is not None]
         out[NAMES[c]] = round(float(np.mean(vals)), 4) if vals else None
     return out
+
+
+def _mean(vals: list) -> float | None:
+    vals = [v for v in vals if v is not None]
+    return round(float(np.mean(vals)), 4) if vals else None
 
 
 def main(argv=None) -> int:

@@ -221,6 +221,14 @@ class IouAccumulator:
         """{class name: IoU, or None where the class never occurs in the truth}."""
         return _iou(self._totals())
 
+    def precision_recall(self) -> dict:
+        """{class name: {"precision", "recall"}} pooled over the frames (None where undefined)."""
+        inter, union, true = self._totals()
+        pred = union - true + inter
+        ratio = lambda a, b: round(float(a / b), 4) if b else None  # noqa: E731
+        return {NAMES[c]: {"precision": ratio(i, p), "recall": ratio(i, t)}
+                for c, i, p, t in zip(CLASSES, inter, pred, true, strict=True)}
+
     def draws(self, n: int, rng, minus: "IouAccumulator | None" = None) -> list[dict]:
         """`n` bootstrap results: the pooled IoU of as many frames drawn with replacement. With
         `minus` (a second model on the same frames), its IoU on the same draw is subtracted: the

@@ -100,6 +100,9 @@ def test_iou_is_pooled_over_frames_and_its_bootstrap_interval_spans_the_frames()
     for _ in range(4):
         same.add(half, truth)
     assert same.interval(n=50)["lane_line"] == [0.0, 0.0]
+    # precision: 50 of 50 + 3 x 25 predicted pixels are true; recall: 50 of 200 true pixels
+    assert acc.precision_recall()["lane_line"] == {"precision": 0.4, "recall": 0.25}
+    assert acc.precision_recall()["stop_line"] == {"precision": None, "recall": None}
 
 
 def test_stop_facing_frames_each_show_a_stop_line_ahead_of_a_camera_on_the_road():
