@@ -17,14 +17,14 @@ full resolution (labels resized back from the model's input size), and also insi
 (the pixels the mapper actually uses), each with a 90 % bootstrap interval over the frames
 (`iou_ci90`; for the mean over worlds, each world's frames redrawn). Speed: p50/p95 ms of one
 forward pass + argmax at the model's input size with one onnxruntime thread, and of the whole
-`segment()` call at full size. `paint_gate`: precision and recall in the ROI of the model as
-the mapping vehicles run it (paint it is unsure of left unknown: vehicle.paint_min_margin)
-against the plain argmax, per world and their mean. With `--baseline`, a second model is scored
-on the same frames, and `baseline.diff` (and each world's) is the model's IoU minus the baseline's, with a paired
-bootstrap interval (`diff_ci90`: both scored on each draw of frames), to compare two training
-recipes far more finely than their own intervals allow. That interval covers the frames, not the
-training: two seeds of one recipe differed by 0.006 in mean lane line with a paired interval of
-[-0.009, -0.003] (MODEL_CARD.md), so compare recipes over seeds."""
+`segment()` call at full size. `paint_gate`: precision and recall in the ROI of the model as the
+mapping vehicles run it (paint it is unsure of left unknown: vehicle.paint_min_margin) against
+the plain argmax, per world and their mean. With `--baseline`, a second model is scored on the
+same frames, and `baseline.diff` (and each world's) is the model's IoU minus the baseline's,
+with a paired bootstrap interval (`diff_ci90`: both scored on each draw of frames), to compare
+two training recipes far more finely than their own intervals allow. That interval covers the
+frames, not the training: two seeds of one recipe differed by 0.006 in mean lane line with a
+paired interval of [-0.009, -0.003] (MODEL_CARD.md), so compare recipes over seeds."""
 
 import argparse
 import json
