@@ -230,8 +230,11 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
     model, x_all = model.cpu(), x_all[:4].cpu()
     del y_all
     model_path = out / "roadseg.onnx"
-    # for fine-tuning (--init); not packaged. Saved with the logit offsets in the head's bias.
-    torch.save({"arch": model.arch, "state": model.state_dict()}, out / "roadseg.pt")
+    # for fine-tuning (--init); not packaged. Saved with the logit offsets in the head's bias,
+    # and whether its batch norms were frozen (a fine-tune of an export: norms folded into the
+    # convolutions, running statistics the identity); a fine-tune of this file keeps them so
+    torch.save({"arch": model.arch, "state": model.state_dict(), "frozen_norms": frozen_norms},
+               out / "roadseg.pt")
     export_onnx(model, model_path, seed=seed)
     max_diff, agree = verify_onnx(model, model_path, x_all[:4])
     refine = calibrate_refine(model_path, frames[:n_cal], labels[:n_cal])
@@ -259,8 +262,13 @@ def validation_frames(n_frames: int) -> int:
 
 
 def _load_init(model, init: str) -> bool:
-    """Weights from a trained model: roadseg.pt (same architecture; batch norms as trained) or
-    an exported ONNX file (batch norms folded: kept frozen). -> whether norms must stay frozen."""
+    """Weights from a trained model: roadseg.pt (same architecture; batch norms as trained,
+    or kept frozen if that run kept them frozen) or an exported ONNX file (batch norms folded:
+    kept frozen). -> whether norms must stay frozen.
+
+    Unfreezing folded norms (running mean 0, variance 1) swaps the identity for each batch's
+    statistics: continuing a fine-tune of the packaged export from its roadseg.pt did that,
+    and the loss went from 0.12 to 0.51 in the first 100 steps."""
     import torch
 
     from services.segtrain.net import RoadSegNet, load_onnx_weights, onnx_widths, widen
@@ -287,7 +295,7 @@ def _load_init(model, init: str) -> bool:
         for key in ("head.weight", "head.bias"):
             state[key] = torch.cat([state[key], state[key][:1].repeat_interleave(extra, 0)])
     model.load_state_dict(state)
-    return False
+    return bool(saved.get("frozen_norms", False))
 
 
 # the curb too: a light curb looks like an edge line

@@ -72,6 +72,9 @@ def test_fine_tuning_starts_from_a_saved_run_of_the_same_architecture(tmp_path):
                                                  saved.state_dict().values(), strict=True))
     with pytest.raises(ValueError, match="architecture"):
         train._load_init(RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]), str(path))
+    # a run that fine-tuned an export kept its folded norms frozen: so does its continuation
+    torch.save({"arch": saved.arch, "state": saved.state_dict(), "frozen_norms": True}, path)
+    assert train._load_init(model, str(path)) is True
 
 
 def test_subpixel_export_gives_full_resolution_labels_and_starts_as_its_init(tmp_path, rng):
