@@ -162,10 +162,11 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
             seg, spec, frames=10 if quick else frames, seed=1, rng=rng, baseline=baseline,
             paired_rng=paired_rng, gated=gated)
     report["iou"] = _mean_over_worlds(report["worlds"], "iou")
-    report["paint_gate"] = {
+    report["paint_gate"] = {  # means over the worlds whose truth has the class (as for IoU)
         "min_margin": gated.min_margin,
         **{key: {name: {m: _mean([e["paint_gate"][key][name][m]
-                                  for e in report["worlds"].values()])
+                                  for e in report["worlds"].values()
+                                  if e["paint_gate"][key][name]["recall"] is not None])
                         for m in ("precision", "recall")}
                  for name in TARGETS}
            for key in ("roi", "roi_plain")}}
