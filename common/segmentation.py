@@ -313,6 +313,8 @@ def _unsure_paint_unknown(scores: np.ndarray, labels: np.ndarray, min_margin: fl
     """labels (H, W) with the marking pixels whose best score (C, H, W) leads the second best
     by less than min_margin set to 0 (unknown), in place. Only the marking pixels (a few per
     cent of a frame) are gathered, so it costs ~0.3 ms at 640x360."""
+    if len(scores) < 2:  # a one-channel head has no runner-up to lead
+        return labels
     flat = labels.reshape(-1)
     idx = np.flatnonzero(flat >= Cls.LANE_LINE)
     if len(idx):
