@@ -110,9 +110,10 @@ class OnnxSegmenter(Segmenter):
 
     `min_margin` > 0 keeps only confident markings: a pixel whose winning class is a marking
     (lane line, stop line, crosswalk, ground sign) but whose score beats the runner-up by less
-    than `min_margin` (logits) is labelled 0, unknown. For the stages that turn pixels into
-    points (mapping votes, ICP), where a wrong point costs more than a missing one; the IoU
-    benchmark measures the plain argmax (0)."""
+    than `min_margin` (logits) is labelled 0, unknown (with several heads: that head paints
+    nothing there, so the heads under it keep their say). For the stages that turn pixels into
+    points (mapping votes), where a wrong point costs more than a missing one; the IoU benchmark
+    measures the plain argmax (0)."""
 
     def __init__(
         self,
