@@ -162,14 +162,8 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
             seg, spec, frames=10 if quick else frames, seed=1, rng=rng, baseline=baseline,
             paired_rng=paired_rng, gated=gated)
     report["iou"] = _mean_over_worlds(report["worlds"], "iou")
-    report["paint_gate"] = {  # means over the worlds whose truth has the class (as for IoU)
-        "min_margin": gated.min_margin,
-        **{key: {name: {m: _mean([e["paint_gate"][key][name][m]
-                                  for e in report["worlds"].values()
-                                  if e["paint_gate"][key][name]["recall"] is not None])
-                        for m in ("precision", "recall")}
-                 for name in TARGETS}
-           for key in ("roi", "roi_plain")}}
+    report["paint_gate"] = {"min_margin": gated.min_margin,
+                            **_paint_gate_means(report["worlds"])}
     report["iou_ci90"] = bootstrap_interval(_means_of_draws(draws))
     report["iou_roi"] = _mean_over_worlds(report["worlds"], "iou_roi")
     if worlds and worlds[0][0] == "karlsruhe":  # the only world with stop lines
@@ -210,14 +204,25 @@ def _diff(a: dict, b: dict) -> dict:
 
 
 def _mean_over_worlds(worlds: dict, key: str) -> dict:
+    return {NAMES[c]: _mean([w[key][NAMES[c]] for w in worlds.values()]) for c in CLASSES}
+
+
+def _paint_gate_means(worlds: dict) -> dict:
+    """{"roi", "roi_plain"}: per marking class, the mean precision and recall over the worlds
+    whose truth has the class (as the IoU means)."""
     out = {}
-    for c in CLASSES:
-        vals = [w[key][NAMES[c]] for w in worlds.values() if w[key][NAMES[c]] is not None]
-        out[NAMES[c]] = round(float(np.mean(vals)), 4) if vals else None
+    for key in ("roi", "roi_plain"):
+        out[key] = {}
+        for name in TARGETS:
+            entries = [e["paint_gate"][key][name] for e in worlds.values()]
+            entries = [pr for pr in entries if pr["recall"] is not None]
+            out[key][name] = {m: _mean([pr[m] for pr in entries])
+                              for m in ("precision", "recall")}
     return out
 
 
 def _mean(vals: list) -> float | None:
+    """Mean of the values that are not None, to 4 places; None if there are none."""
     vals = [v for v in vals if v is not None]
     return round(float(np.mean(vals)), 4) if vals else None
 

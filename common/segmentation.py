@@ -366,9 +366,8 @@ def argmax_channels(scores: np.ndarray) -> np.ndarray:
 
 def get_segmenter(kind: str = "onnx", **kw) -> Segmenter:
     """Factory: "truth" -> GroundTruthSegmenter(**kw); "onnx" -> OnnxSegmenter(**kw) with the
-    packaged model unless a non-empty `model_path` is given. With SegmentationConfig `seg`:
-    get_segmenter(seg.kind, model_path=seg.model_path, intra_op_threads=seg.intra_op_threads)
-    for "onnx"."""
+    packaged model unless a non-empty `model_path` is given (from a SegmentationConfig:
+    `configured_onnx`)."""
     if kind == "truth":
         return GroundTruthSegmenter(**kw)
     if kind == "onnx":
@@ -376,3 +375,11 @@ def get_segmenter(kind: str = "onnx", **kw) -> Segmenter:
             kw.pop("model_path", None)
         return OnnxSegmenter(**kw)
     raise ConfigError(f"unknown segmenter {kind!r} (expected 'onnx' or 'truth')")
+
+
+def configured_onnx(seg, *, min_margin: float = 0.0) -> OnnxSegmenter:
+    """The ONNX segmenter a SegmentationConfig `seg` names (the packaged model when its
+    model_path is empty), with the caller's `min_margin`: the mapping vehicles and the car
+    each set their own (vehicle.paint_min_margin, localizer.paint_min_margin)."""
+    return get_segmenter("onnx", model_path=seg.model_path,
+                         intra_op_threads=seg.intra_op_threads, min_margin=min_margin)

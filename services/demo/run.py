@@ -412,14 +412,12 @@ class DemoRun:
     def _segmenter(self):
         """The segmenter the fleet runs: the configured ONNX model (segmentation.model_path, the
         packaged one when empty) or the corrupted ground truth."""
-        from common.segmentation import get_segmenter
+        from common.segmentation import configured_onnx, get_segmenter
 
         if self.d.segmenter == "truth":
             return get_segmenter("truth")
-        seg = self.cfg.segmentation
-        return get_segmenter("onnx", model_path=seg.model_path,
-                             intra_op_threads=seg.intra_op_threads,
-                             min_margin=self.cfg.vehicle.paint_min_margin)
+        return configured_onnx(self.cfg.segmentation,
+                               min_margin=self.cfg.vehicle.paint_min_margin)
 
     def _mapping_section(self) -> dict:
         s = self.vehicle_summaries

@@ -116,7 +116,7 @@ class _FrameSource:
     """Frame i -> ground points (vehicle frame), classes and attitude jacobians: segment, IPM."""
 
     def __init__(self, log: DriveLog, cfg):
-        from common.segmentation import get_segmenter
+        from common.segmentation import configured_onnx, get_segmenter
 
         self.log = log
         lc, roi = cfg.localizer, cfg.roi
@@ -129,11 +129,7 @@ class _FrameSource:
         if lc.segmenter == "truth":
             self.segmenter = get_segmenter("truth", seed=1)
         else:
-            seg = cfg.segmentation
-            self.segmenter = get_segmenter(
-                "onnx", model_path=seg.model_path, intra_op_threads=seg.intra_op_threads,
-                min_margin=lc.paint_min_margin,
-            )
+            self.segmenter = configured_onnx(cfg.segmentation, min_margin=lc.paint_min_margin)
         self.segmenter_name = getattr(self.segmenter, "name", lc.segmenter)
 
     def points(self, i: int):

@@ -21,7 +21,7 @@ from common.config import RoadmapConfig, to_toml
 from common.drivelog import DriveLog
 from common.grid import owner_of_tile
 from common.messages import GridPatch, IngestAck, IngestBatch
-from common.segmentation import GroundTruthSegmenter, get_segmenter
+from common.segmentation import GroundTruthSegmenter, configured_onnx
 from services.vehicle.estimator import PoseEstimator, dead_reckon
 from services.vehicle.mapper import VehicleMapper
 from services.vehicle.outbox import Outbox
@@ -58,10 +58,7 @@ def _segmenter(log: DriveLog, cfg: RoadmapConfig, kind: str | None):
         kind = "truth"
     if kind == "truth":
         return GroundTruthSegmenter(seed=cfg.vehicle.truth_seed)
-    seg = cfg.segmentation
-    extra = {"model_path": seg.model_path} if seg.model_path else {}
-    return get_segmenter("onnx", intra_op_threads=seg.intra_op_threads,
-                         min_margin=cfg.vehicle.paint_min_margin, **extra)
+    return configured_onnx(cfg.segmentation, min_margin=cfg.vehicle.paint_min_margin)
 
 
 # -- replay ------------------------------------------------------------------------------------
