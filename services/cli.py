@@ -156,6 +156,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iou-loss", type=float, default=0.0,
                    help="weight of a soft-Jaccard term (paint and curb classes) added to the "
                         "cross-entropy (default 0: cross-entropy alone)")
+    p.add_argument("--hard-pixels", type=float, default=1.0,
+                   help="share of each batch's pixels, those with the largest loss, that the "
+                        "cross-entropy averages over (online hard example mining; default 1: "
+                        "all pixels)")
     _common(p)
 
     p = sub.add_parser("dump-config", help="print the effective configuration as TOML")

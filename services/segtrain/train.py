@@ -42,6 +42,7 @@ def train_command(args, cfg) -> int:
     minutes = float(args.minutes)
     if args.turn_prob is None:
         args.turn_prob = seg_data.TURN_PROB
+    check_hard_pixels(args.hard_pixels)  # before minutes of rendering
     if args.stream:
         return _train_streamed(args, out, t_start)
     render_budget_s = (min(0.2 * minutes * 60.0, 10 * 60.0) if args.render_minutes is None
@@ -68,6 +69,7 @@ def train_command(args, cfg) -> int:
     result = train_and_export(frames, labels, out, seed=args.seed, train_s=train_s,
                               device=args.device, batch=args.batch, init=args.init,
                               iou_loss=args.iou_loss, arch=args.arch,
+                              hard_pixels=args.hard_pixels,
                               crop_hw=crop_size(args.crop, frames.shape[1:3]))
     result["render_s"] = round(render_s, 1)
     return _finish(args, out, result, t_start)
@@ -109,7 +111,7 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
         result = train_and_export(frames, labels, out, seed=args.seed, train_s=train_s,
                                   device=args.device, batch=args.batch, init=args.init,
                                   iou_loss=args.iou_loss, arch=args.arch, more=stream.take,
-                                  capacity=args.frames,
+                                  capacity=args.frames, hard_pixels=args.hard_pixels,
                                   crop_hw=crop_size(args.crop, frames.shape[1:3]))
     finally:
         stream.close()
@@ -132,6 +134,7 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
         + ([f"--init {args.init}"] if args.init else [])
         + ([f"--turn-prob {args.turn_prob:g}"] if args.turn_prob != seg_data.TURN_PROB else [])
         + ([f"--iou-loss {args.iou_loss:g}"] if args.iou_loss else [])
+        + ([f"--hard-pixels {args.hard_pixels:g}"] if args.hard_pixels < 1.0 else [])
         + ([f"--crop {args.crop}"] if args.crop != DEFAULT_CROP else []))
     result["total_s"] = round(time.perf_counter() - t_start, 1)
     (out / "train_log.json").write_text(json.dumps(result, indent=2))
@@ -152,11 +155,13 @@ def class_weights(labels: np.ndarray) -> np.ndarray:
 def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
                      device: str = "cpu", batch: int = BATCH, init: str | None = None,
                      iou_loss: float = 0.0, arch: str = "s", more=None,
-                     capacity: int = 0, crop_hw: tuple[int, int] = CROP_HW) -> dict:
+                     capacity: int = 0, crop_hw: tuple[int, int] = CROP_HW,
+                     hard_pixels: float = 1.0) -> dict:
     """Train RoadSegNet of size `arch` (archs.ARCHS) for train_s seconds on `device` (cpu: 2
     threads; cuda: the frames live on the GPU), from scratch or, with `init`, from a trained
     model (fine-tuning at LR_FINETUNE; an exported ONNX file's folded batch norms are kept
-    frozen), on class-weighted cross-entropy plus `iou_loss` x soft_jaccard_loss; with `more`
+    frozen), on class-weighted cross-entropy (over the `hard_pixels` share of each batch's
+    pixels with the largest loss: hard_pixel_loss) plus `iou_loss` x soft_jaccard_loss; with `more`
     (FrameStream.take) frames keep arriving while it trains, up to `capacity` in all;
     batches are random `crop_hw` (H, W) windows of the frames (the whole frame when it is the
     frame's size); export to ONNX (on the CPU, auxiliary classes folded into none) and check
@@ -184,8 +189,9 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
     model = model.to(dev)
     lr_max = LR_FINETUNE if init else LR_MAX
     opt = torch.optim.AdamW(model.parameters(), lr=lr_max, weight_decay=1e-4)
-    loss_fn = torch.nn.CrossEntropyLoss(weight=torch.tensor(weights, dtype=torch.float32,
-                                                            device=dev))
+    check_hard_pixels(hard_pixels)
+    class_w = torch.tensor(weights, dtype=torch.float32, device=dev)
+    loss_fn = torch.nn.CrossEntropyLoss(weight=class_w)
     logger.info("training %d params on %d frames (%d held for validation), weights %s%s",
                 count_parameters(model), len(frames) - n_val, n_val, np.round(weights, 2),
                 f", from {init}" if init else "")
@@ -207,7 +213,8 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
         model.crop_rows = (top, x_all.shape[2])
         xb, yb = augment(xb, yb.long(), rng)
         logits = model(xb)
-        loss = loss_fn(logits, yb)
+        loss = (loss_fn(logits, yb) if hard_pixels >= 1.0
+                else hard_pixel_loss(logits, yb, class_w, hard_pixels, rng))
         if iou_loss:
             loss = loss + iou_loss * soft_jaccard_loss(logits, yb)
         opt.zero_grad()
@@ -249,7 +256,8 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
         "val_iou_town": val_iou, "onnx_max_abs_diff": max_diff, "onnx_argmax_agreement": agree,
         "model_bytes": model_path.stat().st_size, "seed": seed, "device": device,
         "batch": batch, "init": init, "lr_max": lr_max, "logit_bias": bias,
-        "iou_loss_weight": iou_loss, "arch": arch, "refine": refine,
+        "iou_loss_weight": iou_loss, "hard_pixels": hard_pixels, "arch": arch,
+        "refine": refine,
         "crop_hw": list(crop_hw),
         "val_iou_town_runtime": val_runtime,
     }
@@ -316,6 +324,30 @@ def soft_jaccard_loss(logits, y):
     iou = inter / (prob.sum((0, 2, 3)) + t_sum - inter + 1.0)
     present = (t_sum > 0).to(prob.dtype)  # absent classes: no term (no device sync)
     return ((1.0 - iou) * present).sum() / present.sum().clamp(min=1.0)
+
+
+def check_hard_pixels(share: float) -> None:
+    if not 0.0 < share <= 1.0:
+        raise ConfigError(f"--hard-pixels must be a share in (0, 1], got {share}")
+
+
+def hard_pixel_loss(logits, y, class_w, share: float, rng, sample: int = 65536):
+    """Class-weighted cross-entropy averaged over the `share` of the batch's pixels with the
+    largest loss (online hard example mining, as BiSeNet's training does): the easy road and
+    sky pixels, most of a frame, stop steering the gradient, and the borders of thin lines,
+    curbs beside lines and far paint get it. The cut-off is the (1 - share) quantile of the
+    per-pixel losses of `sample` pixels drawn at random (a full sort of 1.8 M losses costs
+    more than the step's backward pass), or of all of them in a smaller batch."""
+    import torch
+
+    per_px = torch.nn.functional.cross_entropy(logits, y, weight=class_w, reduction="none")
+    flat = per_px.reshape(-1)
+    probe = flat.detach()
+    if probe.numel() > sample:
+        probe = probe[torch.from_numpy(rng.integers(0, probe.numel(), sample)).to(flat.device)]
+    cut = torch.quantile(probe, 1.0 - share)
+    hard = flat >= cut
+    return (flat * hard).sum() / hard.sum().clamp(min=1)
 
 
 CALIBRATE_FRAMES = 128
@@ -664,8 +696,9 @@ def _crop_text(result: dict) -> str:
 
 
 def _iou_text(result: dict) -> str:
-    w = result.get("iou_loss_weight")
-    return f" plus {w:g} x soft-Jaccard loss on the paint and curb classes" if w else ""
+    w, hard = result.get("iou_loss_weight"), result.get("hard_pixels", 1.0)
+    text = f" over the {100 * hard:g} % hardest pixels of each batch" if hard < 1.0 else ""
+    return text + (f" plus {w:g} x soft-Jaccard loss on the paint and curb classes" if w else "")
 
 
 def _init_text(result: dict) -> str:

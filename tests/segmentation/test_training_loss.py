@@ -1,12 +1,14 @@
-"""The training loss's soft-Jaccard term (needs the optional torch extra: `.[train]`)."""
+"""The training loss's soft-Jaccard term and hard-pixel cross-entropy (needs the optional torch
+extra: `.[train]`)."""
 
+import numpy as np
 import pytest
 
 from common.classes import Cls
 
 torch = pytest.importorskip("torch", reason="training tests need the .[train] extra (torch)")
 
-from services.segtrain.train import soft_jaccard_loss  # noqa: E402
+from services.segtrain.train import hard_pixel_loss, soft_jaccard_loss  # noqa: E402
 
 CLASSES = 7  # ours + the curb training class
 
@@ -46,3 +48,33 @@ def test_gradient_raises_the_missed_class_and_lowers_the_false_one():
     g = logits.grad[0]
     assert float(g[Cls.LANE_LINE, 0, 15]) < 0.0  # descent raises lane line on the line
     assert float(g[Cls.LANE_LINE, 0, 0]) > 0.0  # and lowers it off the line
+
+
+def test_hard_pixels_all_is_the_weighted_cross_entropy():
+    y = _line_frame()
+    logits = torch.randn(1, CLASSES, 32, 32)
+    w = torch.linspace(1.0, 3.0, CLASSES)
+    full = hard_pixel_loss(logits, y, w, 1.0, np.random.default_rng(0))
+    per_px = torch.nn.functional.cross_entropy(logits, y, weight=w, reduction="none")
+    assert float(full) == pytest.approx(float(per_px.mean()), rel=1e-5)
+
+
+def test_hard_pixels_train_only_on_the_worst_share():
+    y = _line_frame()  # 64 line pixels of 1024
+    logits = _confident(y).clone()
+    logits[:, :, :, 15] = 0.0  # one column of the line unsure: 32 hard pixels
+    logits.requires_grad_(True)
+    w = torch.ones(CLASSES)
+    loss = hard_pixel_loss(logits, y, w, 32 / 1024, np.random.default_rng(0), sample=1024)
+    assert float(loss.detach()) == pytest.approx(np.log(CLASSES), rel=1e-3)  # uniform: log C
+    loss.backward()
+    touched = logits.grad.abs().sum(1)[0] > 0
+    assert bool(touched[:, 15].all()) and int(touched.sum()) == 32
+
+
+def test_a_bad_hard_pixel_share_is_refused_before_rendering(tmp_path, capsys):
+    from services.cli import main
+
+    assert main(["train-seg", "--out", str(tmp_path), "--hard-pixels", "1.5"]) == 1
+    assert "--hard-pixels must be a share in (0, 1]" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # nothing rendered, nothing written
