@@ -337,7 +337,10 @@ def hard_pixel_loss(logits, y, class_w, share: float, rng, sample: int = 65536):
     sky pixels, most of a frame, stop steering the gradient, and the borders of thin lines,
     curbs beside lines and far paint get it. The cut-off is the (1 - share) quantile of the
     per-pixel losses of `sample` pixels drawn at random (a full sort of 1.8 M losses costs
-    more than the step's backward pass), or of all of them in a smaller batch."""
+    more than the step's backward pass), or of all of them in a smaller batch. The hard
+    pixels' weighted losses are averaged per pixel (torch's CrossEntropyLoss with weights
+    divides by the sum of the weights instead), so the training loop keeps that loss for a
+    share of 1, as before the option existed."""
     import torch
 
     per_px = torch.nn.functional.cross_entropy(logits, y, weight=class_w, reduction="none")
@@ -648,7 +651,7 @@ def model_card(result: dict) -> str:
 - **Training**: `{result.get("command", "roadmap train-seg")}`
   (`pip install .[train]`){_init_text(result)}, RoadSegNet {_arch_text(result)}, AdamW,
   cosine schedule (peak learning rate {result.get("lr_max", LR_MAX):g}),
-  class-weighted cross-entropy (weights {result["class_weights"]}){_iou_text(result)}, device
+  class-weighted cross-entropy (weights {result["class_weights"]}){_loss_text(result)}, device
   `{result.get("device", "cpu")}`, batch {result.get("batch", BATCH)}; {result["steps"]} steps in
   {result["train_s"] / 60:.1f} min after {result.get("render_s", 0) / 60:.1f} min of rendering{
     " (the first frames; rendering went on while it trained)" if result.get("stream") else ""}.
@@ -695,7 +698,7 @@ def _crop_text(result: dict) -> str:
     return f"random {w}x{h} crops"
 
 
-def _iou_text(result: dict) -> str:
+def _loss_text(result: dict) -> str:
     w, hard = result.get("iou_loss_weight"), result.get("hard_pixels", 1.0)
     text = f" over the {100 * hard:g} % hardest pixels of each batch" if hard < 1.0 else ""
     return text + (f" plus {w:g} x soft-Jaccard loss on the paint and curb classes" if w else "")
