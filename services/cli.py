@@ -150,6 +150,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="set the paint-border settings of a trained ONNX model (metadata "
                         "`refine`) on the calibration frames of these rendering settings, and "
                         "stop (done by every training run)")
+    p.add_argument("--reexport", default=None, metavar="MODEL",
+                   help="write a trained RoadSegNet ONNX file again as this version exports it "
+                        "(weights and metadata kept; since 2026-11-25: a dynamic input height, "
+                        "for OnnxSegmenter's sky rows) to --out/roadseg.onnx, check it, and stop")
     p.add_argument("--turn-prob", type=float, default=None,
                    help="share of training poses turned 15-90 deg off the route, lane lines "
                         "crossing the view (default: services/segtrain/data.py TURN_PROB)")

@@ -43,6 +43,10 @@ def train_command(args, cfg) -> int:
     if args.turn_prob is None:
         args.turn_prob = seg_data.TURN_PROB
     check_hard_pixels(args.hard_pixels)  # before minutes of rendering
+    if args.reexport:
+        logger.info("%s -> %s: %s", args.reexport, out / "roadseg.onnx",
+                    reexport_onnx(args.reexport, out / "roadseg.onnx"))
+        return 0
     if args.stream:
         return _train_streamed(args, out, t_start)
     render_budget_s = (min(0.2 * minutes * 60.0, 10 * 60.0) if args.render_minutes is None
@@ -565,7 +569,8 @@ def _validate(model, x_u8, y) -> dict:
 
 
 def export_onnx(model, path: Path, *, seed: int) -> None:
-    """Fixed input (1, 3, H, W) float RGB / 255; output `logits` (1, 6, H/2, W/2), which
+    """Input (1, 3, H, W) float RGB / 255 (W fixed, H dynamic, nominally INPUT_SIZE's);
+    output `logits` (1, 6, H/2, W/2), which
     OnnxSegmenter upsamples bilinearly to (H, W) before its argmax (a sub-pixel head: (1, 6 x 4,
     H/2, W/2), argmaxed per sub-pixel); self-describing metadata under `roadmap.segmentation`
     (read by OnnxSegmenter)."""
@@ -575,9 +580,12 @@ def export_onnx(model, path: Path, *, seed: int) -> None:
     w, h = INPUT_SIZE
     model.half_res_logits = True  # the runtime upsamples (OnnxSegmenter.segment_model_size)
     dummy = torch.rand(1, 3, h, w)
+    # the height is dynamic, so the runtime can leave out the rows above the horizon
+    # (OnnxSegmenter's sky_fraction; it fixes the height it runs at when it loads the file)
     torch.onnx.export(model, (dummy,), str(path), input_names=["image"],
                       output_names=["logits"], opset_version=17, dynamo=False,
-                      do_constant_folding=True)
+                      do_constant_folding=True,
+                      dynamic_axes={"image": {2: "height"}, "logits": {2: "logit_height"}})
     proto = onnx.load(str(path))
     meta = {"name": "roadseg", "arch": model.arch, "input_size": [w, h], "scale": 1.0 / 255.0,
             "mean": [0.0, 0.0, 0.0], "std": [1.0, 1.0, 1.0],
@@ -589,6 +597,44 @@ def export_onnx(model, path: Path, *, seed: int) -> None:
     proto.producer_name = "roadmap train-seg"
     onnx.checker.check_model(proto)
     onnx.save(proto, str(path))
+
+
+def reexport_onnx(src, dst) -> dict:
+    """The RoadSegNet export `src` written again to `dst` by export_onnx (same weights, its
+    metadata kept), checked against `src` on random frames -> {max_abs_diff, argmax_agreement}.
+    For files exported before export_onnx changed (a fixed input height before 2026-11-25)."""
+    import onnxruntime as ort
+    import torch
+
+    from services.segtrain.net import RoadSegNet, load_onnx_weights
+
+    sess = ort.InferenceSession(str(src), providers=["CPUExecutionProvider"])
+    meta = json.loads(sess.get_modelmeta().custom_metadata_map.get(META_KEY, "{}"))
+    if "arch" not in meta:
+        raise ConfigError(f"{src}: not a RoadSegNet export (no 'arch' in its metadata)")
+    arch = dict(meta["arch"])
+    model = RoadSegNet(num_classes=seg_data.TRAIN_CLASSES, widths=arch["widths"],
+                       depths=arch["depths"], rows=arch.get("rows", False),
+                       subpixel=arch.get("subpixel", 1))
+    load_onnx_weights(model, src)  # a 6-class head: the curb row starts as none (same output)
+    model.eval()
+    model.export_classes = NUM_CLASSES
+    Path(dst).parent.mkdir(parents=True, exist_ok=True)
+    export_onnx(model, Path(dst), seed=meta.get("seed", 0))
+    set_metadata(dst, **meta)
+    new = ort.InferenceSession(str(dst), providers=["CPUExecutionProvider"])
+    w, h = INPUT_SIZE
+    x = np.random.default_rng(0).random((4, 3, h, w), np.float32)
+    diffs, agree = [], []
+    for frame in x:
+        a = sess.run(None, {sess.get_inputs()[0].name: frame[None]})[0]
+        b = new.run(None, {"image": frame[None]})[0]
+        diffs.append(float(np.abs(a - b).max()))
+        agree.append(float((a.argmax(1) == b.argmax(1)).mean()))
+    if max(diffs) > 1e-3 or min(agree) < 0.9999:
+        raise RuntimeError(f"re-export of {src} differs: max diff {max(diffs)}, "
+                           f"argmax agreement {min(agree)}")
+    return {"max_abs_diff": max(diffs), "argmax_agreement": min(agree)}
 
 
 def verify_onnx(model, path: Path, x_u8) -> tuple[float, float]:

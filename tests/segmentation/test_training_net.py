@@ -81,14 +81,8 @@ def test_subpixel_export_gives_full_resolution_labels_and_starts_as_its_init(tmp
     """A sub-pixel head (`s-sub`) initialised from a 1/2-resolution export is that model with
     nearest-neighbour upsampling; its own export is argmaxed per sub-pixel by OnnxSegmenter
     into the labels of torch's pixel_shuffle."""
-    torch.manual_seed(3)
-    half = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]).eval()
-    for m in half.modules():  # distinct folded biases (the export shares equal initializers)
-        if isinstance(m, torch.nn.BatchNorm2d):
-            torch.nn.init.normal_(m.bias, 0.0, 0.1)
-    half.export_classes = NUM_CLASSES
     half_path = tmp_path / "half.onnx"
-    train.export_onnx(half, half_path, seed=3)
+    half = _export_random(half_path, seed=3)
     sub = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s-sub"]).eval()
     train._load_init(sub, str(half_path))
     sub.export_classes = NUM_CLASSES
@@ -137,3 +131,47 @@ def test_a_widened_model_starts_as_the_narrower_export_it_is_fine_tuned_from(tmp
         assert not wide.head.weight[:, 12:].any()  # and not yet read
     with pytest.raises(ValueError, match="cannot widen"):
         widen(wide, RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]))
+
+
+def test_an_export_has_a_dynamic_height_and_a_re_export_keeps_the_model(tmp_path, rng):
+    """export_onnx leaves the input height dynamic (OnnxSegmenter's sky rows); --reexport
+    writes an older file again with the same weights and metadata."""
+    import onnx
+
+    path = tmp_path / "a.onnx"
+    model = _export_random(path, seed=5)
+    train.set_metadata(path, refine={"window": 7, "level": 0.5})
+    # an older, fixed-height file: the same graph with the height pinned
+    proto = onnx.load(str(path))
+    assert proto.graph.input[0].type.tensor_type.shape.dim[2].dim_param == "height"
+    proto.graph.input[0].type.tensor_type.shape.dim[2].dim_value = 360
+    old = tmp_path / "old.onnx"
+    onnx.save(proto, str(old))
+    got = train.reexport_onnx(old, tmp_path / "new" / "roadseg.onnx")
+    assert got["max_abs_diff"] < 1e-4 and got["argmax_agreement"] == 1.0
+    new = OnnxSegmenter(tmp_path / "new" / "roadseg.onnx", sky_fraction=0.3)
+    assert new.refine == {"window": 7, "level": 0.5} and new.sky_rows == 96
+    image = rng.integers(0, 255, (360, 640, 3), dtype=np.uint8)
+    model.half_res_logits = False  # (export_onnx set it) logits upsampled as the runtime does
+    with torch.no_grad():
+        ref = model(torch.from_numpy(image[96:].transpose(2, 0, 1)[None] / 255.0).float())
+    assert (new.segment(image)[96:] == ref.argmax(1)[0].numpy()).mean() > 0.999
+    with pytest.raises(train.ConfigError, match="not a RoadSegNet"):
+        bare = onnx.load(str(old))
+        del bare.metadata_props[:]
+        onnx.save(bare, str(tmp_path / "bare.onnx"))
+        train.reexport_onnx(tmp_path / "bare.onnx", tmp_path / "x.onnx")
+
+
+def _export_random(path, *, seed: int):
+    """A randomly initialised RoadSegNet `s` exported to `path` (-> the torch model), with
+    distinct folded biases (the export shares equal initializers, which loading cannot tell
+    apart)."""
+    torch.manual_seed(seed)
+    model = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]).eval()
+    for m in model.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            torch.nn.init.normal_(m.bias, 0.0, 0.1)
+    model.export_classes = NUM_CLASSES
+    train.export_onnx(model, path, seed=seed)
+    return model
