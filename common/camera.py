@@ -114,6 +114,24 @@ class CameraModel:
         return origin[:2] + lam[:, None] * rays[:, :2]
 
 
+def sky_rows(camera: CameraModel, margin_deg: float) -> int:
+    """How many top rows of the image lie above every ray that rises `margin_deg` above level
+    (across the camera's view): ground seen there would have to climb more than `margin_deg`
+    towards the horizon, so no road marking is there to segment. 0 when such rays leave the
+    image through its top (a camera pitched far up or a negative margin)."""
+    theta = np.radians(np.linspace(-89.0, 89.0, 357))  # directions across the view
+    rise = math.radians(margin_deg)
+    far = 1e4  # metres: the horizon
+    dirs = np.stack([np.cos(rise) * np.cos(theta), np.cos(rise) * np.sin(theta),
+                     np.full_like(theta, np.sin(rise))], axis=1)
+    origin = camera.T_vehicle_camera[:3, 3]
+    uv, in_front = camera.project_vehicle_points(origin + far * dirs)
+    inside = in_front & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width)
+    if not inside.any():
+        return 0
+    return int(np.clip(math.floor(np.nanmin(uv[inside, 1])), 0, camera.height))
+
+
 @dataclass(frozen=True)
 class IpmLookup:
     """Pixel -> ground point table for the pixels inside the ROI, built once per calibration.

@@ -31,3 +31,24 @@ def test_ipm_lookup_covers_only_the_roi():
     labels[0, :] = 2  # top row: sky, outside the ROI
     pts, cls = lut.lookup(labels)
     assert len(pts) > 0 and (cls == 2).all() and pts[:, 0].max() < 6.0
+
+
+def test_sky_rows_lie_above_the_rays_rising_the_margin_above_level():
+    import dataclasses
+    import math
+
+    from common.camera import sky_rows
+
+    cfg = dataclasses.replace(RoadmapConfig().camera, dist=[0.0, 0.0, 0.0, 0.0, 0.0])
+    cam = camera_from_config(cfg)
+    # no margin: the horizon's row, cy - fy tan(pitch), at the image's centre and sides
+    horizon = cfg.cy - cfg.fy * math.tan(math.radians(cfg.pitch_deg))
+    assert sky_rows(cam, 0.0) == math.floor(horizon)
+    # rays rising 10 deg: higher in the image, and highest at its sides
+    at_centre = cfg.cy - cfg.fy * math.tan(math.radians(cfg.pitch_deg + 10.0))
+    assert sky_rows(cam, 10.0) < at_centre < horizon
+    assert sky_rows(cam, 5.0) > sky_rows(cam, 10.0)
+    # a camera looking steeply down sees no sky; one looking up sees mostly sky
+    assert sky_rows(camera_from_config(dataclasses.replace(cfg, pitch_deg=40.0)), 10.0) == 0
+    up = camera_from_config(dataclasses.replace(cfg, pitch_deg=-30.0))
+    assert cfg.height * 0.8 < sky_rows(up, 10.0) <= cfg.height

@@ -389,8 +389,8 @@ class DemoRun:
 
     def _segmentation(self, log_path: Path, n_frames: int = 20) -> dict:
         """IoU of the segmenter the fleet used, on frames of the production drive."""
-        seg = self._segmenter()
         log = DriveLog(log_path)
+        seg = self._segmenter(log.meta.camera)
         inter, union, n_true, ms = np.zeros(6), np.zeros(6), np.zeros(6), []
         for i in np.linspace(0, len(log) - 1, min(n_frames, len(log))).astype(int):
             truth, image = log.labels(int(i)), log.image(int(i))
@@ -409,15 +409,16 @@ class DemoRun:
                 "ms_p95": float(np.percentile(ms, 95)) if ms else None,
                 "frames": len(ms)}
 
-    def _segmenter(self):
+    def _segmenter(self, camera=None):
         """The segmenter the fleet runs: the configured ONNX model (segmentation.model_path, the
-        packaged one when empty) or the corrupted ground truth."""
+        packaged one when empty; with the `camera`, its sky rows left out as the vehicles leave
+        them) or the corrupted ground truth."""
         from common.segmentation import configured_onnx, get_segmenter
 
         if self.d.segmenter == "truth":
             return get_segmenter("truth")
         return configured_onnx(self.cfg.segmentation,
-                               min_margin=self.cfg.vehicle.paint_min_margin)
+                               min_margin=self.cfg.vehicle.paint_min_margin, camera=camera)
 
     def _mapping_section(self) -> dict:
         s = self.vehicle_summaries

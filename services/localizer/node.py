@@ -129,7 +129,8 @@ class _FrameSource:
         if lc.segmenter == "truth":
             self.segmenter = get_segmenter("truth", seed=1)
         else:
-            self.segmenter = configured_onnx(cfg.segmentation, min_margin=lc.paint_min_margin)
+            self.segmenter = configured_onnx(cfg.segmentation, min_margin=lc.paint_min_margin,
+                                             camera=log.meta.camera)
         self.segmenter_name = getattr(self.segmenter, "name", lc.segmenter)
 
     def points(self, i: int):

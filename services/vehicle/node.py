@@ -58,7 +58,8 @@ def _segmenter(log: DriveLog, cfg: RoadmapConfig, kind: str | None):
         kind = "truth"
     if kind == "truth":
         return GroundTruthSegmenter(seed=cfg.vehicle.truth_seed)
-    return configured_onnx(cfg.segmentation, min_margin=cfg.vehicle.paint_min_margin)
+    return configured_onnx(cfg.segmentation, min_margin=cfg.vehicle.paint_min_margin,
+                           camera=log.meta.camera)
 
 
 # -- replay ------------------------------------------------------------------------------------

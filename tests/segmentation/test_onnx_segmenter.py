@@ -1,5 +1,7 @@
 """OnnxSegmenter runtime: the packaged model, head mapping, factory, and the real TwinLiteNet."""
 
+from functools import partial
+
 import numpy as np
 import pytest
 
@@ -100,7 +102,7 @@ def test_bilinear_upsampling_agrees_with_nearest_on_most_pixels(rng):
 
 
 def test_unsure_paint_becomes_unknown_and_confident_paint_stays():
-    from common.segmentation import _unsure_paint_unknown
+    from common.segmentation import _scores_at, _unsure_paint_unknown
 
     # 4 pixels, 6 classes: a sure lane line, an unsure lane line (lead 0.5), an unsure road
     # pixel (road is never dropped), a crosswalk leading by exactly the margin
@@ -110,7 +112,7 @@ def test_unsure_paint_becomes_unknown_and_confident_paint_stays():
     scores[Cls.ROAD, 0, 2], scores[Cls.LANE_LINE, 0, 2] = 1.1, 1.0
     scores[Cls.CROSSWALK, 0, 3], scores[Cls.NONE, 0, 3] = 2.0, 0.0
     labels = scores.argmax(axis=0).astype(np.uint8)
-    out = _unsure_paint_unknown(scores, labels.copy(), 2.0)
+    out = _unsure_paint_unknown(partial(_scores_at, scores), labels.copy(), 2.0)
     assert out.tolist() == [[Cls.LANE_LINE, Cls.NONE, Cls.ROAD, Cls.CROSSWALK]]
 
 
@@ -134,3 +136,74 @@ def test_min_margin_drops_exactly_the_marking_pixels_the_model_is_unsure_of():
     np.testing.assert_array_equal(gated, np.where(unsure, Cls.NONE, plain))
     with pytest.raises(ConfigError, match="min_margin"):
         OnnxSegmenter(min_margin=-1.0)
+
+
+def test_upsampled_argmax_equals_the_resize_then_argmax(rng):
+    import cv2
+
+    from common.segmentation import _resize_channels, argmax_channels, upsampled_argmax, upsampled_at
+
+    # blobs of classes (as logits are: smooth, with a few thin structures) and pure noise
+    smooth = cv2.resize(rng.normal(0, 3, (6, 12, 20)).transpose(1, 2, 0), (33, 19),
+                        interpolation=cv2.INTER_CUBIC).transpose(2, 0, 1)
+    for scores in (np.ascontiguousarray(smooth, np.float32),
+                   rng.normal(0, 1, (6, 19, 33)).astype(np.float32)):
+        up = _resize_channels(scores, (66, 38))
+        np.testing.assert_array_equal(upsampled_argmax(scores), argmax_channels(up))
+        ys, xs = np.nonzero(np.ones((38, 66), bool))
+        np.testing.assert_allclose(upsampled_at(scores, ys, xs), up.reshape(6, -1), atol=1e-5)
+
+
+@needs_model
+def test_sky_rows_are_labelled_none_and_the_network_sees_only_the_rows_below():
+    from tests.segmentation.test_refine import _road_with_lines
+
+    image = _road_with_lines()
+    full = OnnxSegmenter(refine={})
+    sky = OnnxSegmenter(refine={}, sky_fraction=0.2)  # 72 rows, in steps of 16: 64
+    assert full.sky_rows == 0 and sky.sky_rows == 64
+    assert sky.preprocess(image).shape == (1, 3, 360 - 64, 640)
+    a, b = full.segment(image), sky.segment(image)
+    assert (b[:64] == Cls.NONE).all()
+    paint = a[64:] >= Cls.LANE_LINE
+    assert paint.sum() > 500
+    # below the sky the network's context changes only at the top of its input
+    assert (a[64:] == b[64:]).mean() > 0.98 and (b[64:][paint] == a[64:][paint]).mean() > 0.95
+    # bilinear labels at another size keep the sky in proportion
+    big = OnnxSegmenter(refine={}, sky_fraction=0.2, upsample="bilinear")
+    labels = big.segment(np.repeat(np.repeat(image, 2, 0), 2, 1))
+    assert labels.shape == (720, 1280) and (labels[:128] == Cls.NONE).all()
+    with pytest.raises(ConfigError, match="sky_fraction"):
+        OnnxSegmenter(sky_fraction=1.0)
+
+
+@needs_model
+def test_a_fixed_height_model_segments_every_row(tmp_path, caplog):
+    onnx = pytest.importorskip("onnx")
+
+    proto = onnx.load(str(DEFAULT_MODEL))
+    proto.graph.input[0].type.tensor_type.shape.dim[2].dim_value = 360  # was dynamic
+    path = tmp_path / "fixed.onnx"
+    onnx.save(proto, str(path))
+    with caplog.at_level("WARNING"):
+        seg = OnnxSegmenter(path, sky_fraction=0.3)
+    assert seg.sky_rows == 0 and "every row is segmented" in caplog.text
+    assert seg.segment(np.zeros((360, 640, 3), np.uint8)).shape == (360, 640)
+
+
+@needs_model
+def test_configured_segmenter_leaves_out_the_cameras_sky():
+    import dataclasses
+
+    from common.camera import camera_from_config, sky_rows
+    from common.config import RoadmapConfig
+    from common.segmentation import configured_onnx
+
+    cfg = RoadmapConfig()
+    camera = camera_from_config(cfg.camera)
+    seg = configured_onnx(cfg.segmentation, camera=camera)
+    rows = sky_rows(camera, cfg.segmentation.sky_margin_deg)
+    assert 0 < seg.sky_rows <= rows < seg.sky_rows + 16
+    off = dataclasses.replace(cfg.segmentation, sky_margin_deg=-1.0)
+    assert configured_onnx(off, camera=camera).sky_rows == 0
+    assert configured_onnx(cfg.segmentation).sky_rows == 0  # no camera: every row
