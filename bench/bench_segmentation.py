@@ -15,9 +15,14 @@ paints); the route frames stay as the maps draw them.
 IoU per class = sum of intersections / sum of unions over all frames of a world, at the camera's
 full resolution (labels resized back from the model's input size), and also inside the IPM ROI
 (the pixels the mapper actually uses), each with a 90 % bootstrap interval over the frames
-(`iou_ci90`; for the mean over worlds, each world's frames redrawn). Speed: p50/p95 ms of one
-forward pass + argmax at the model's input size with one onnxruntime thread, and of the whole
-`segment()` call at full size. `paint_gate`: precision and recall in the ROI of the model as the
+(`iou_ci90`; for the mean over worlds, each world's frames redrawn). The model runs as the
+product runs it: the rows above rays rising segmentation.sky_margin_deg above level (the
+nominal camera's `sky_rows`) are not segmented (`--sky-margin-deg -1`: every row). Speed:
+p50/p95 ms of `segment_model_size` (resize, network, upsampling, argmax, border refinement) at
+the model's input size with one onnxruntime thread, and of the whole `segment()` call at full
+size, on the held-out route frames themselves (up to TIMED_FRAMES per world, in turn): until
+2026-11-25 it timed random noise, which has almost no paint borders to upsample and refine
+and so read 12 ms where road frames take 14.5 ms. `paint_gate`: precision and recall in the ROI of the model as the
 mapping vehicles run it (paint it is unsure of left unknown: vehicle.paint_min_margin) against
 the plain argmax, per world and their mean. With `--baseline`, a second model is scored on the
 same frames, and `baseline.diff` (and each world's) is the model's IoU minus the baseline's,
@@ -35,14 +40,15 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common.camera import build_ipm_lookup  # noqa: E402
+from common.camera import build_ipm_lookup, camera_from_config, sky_rows  # noqa: E402
 from common.classes import NAMES, Cls  # noqa: E402
-from common.config import RoiConfig, VehicleConfig  # noqa: E402
+from common.config import CameraConfig, RoiConfig, SegmentationConfig, VehicleConfig  # noqa: E402
 from common.segmentation import DEFAULT_MODEL, get_segmenter  # noqa: E402
 from services.segtrain.evaluate import (  # noqa: E402
     CLASSES,
@@ -60,6 +66,7 @@ TARGETS = {"lane_line": 0.80, "stop_line": 0.75, "crosswalk": 0.75, "ground_sign
 # packaged model's lane-line IoU from 0.484 to 0.573.
 FRAMES = 300
 DRAWS = 1000  # bootstrap resamples of each world's frames
+TIMED_FRAMES = 50  # route frames per world kept for the speed measurement
 
 
 def heldout_worlds() -> list[tuple[str, str]]:
@@ -74,14 +81,17 @@ def heldout_worlds() -> list[tuple[str, str]]:
 
 
 def evaluate_world(seg, spec: str, *, frames: int, seed: int, rng, facing: Cls | None = None,
-                   baseline=None, paired_rng=None,
-                   gated=None) -> tuple[dict, list[dict], list[dict] | None]:
+                   baseline=None, paired_rng=None, gated=None,
+                   keep: list | None = None) -> tuple[dict, list[dict], list[dict] | None]:
     """The world's report entry, DRAWS bootstrap results of its full-frame IoU, and with a
     `baseline` segmenter, DRAWS paired bootstrap results (drawn with `paired_rng`, so that the
     model's own draws do not depend on whether a baseline is given) of seg's IoU minus the
     baseline's. With `gated` (the model as the mapping vehicles run it: unsure paint left
-    unknown), `paint_gate` holds the ROI precision and recall of both."""
+    unknown), `paint_gate` holds the ROI precision and recall of both. The first TIMED_FRAMES
+    images are appended to `keep` (for speed())."""
     pairs, camera = render_heldout(spec, frames=frames, seed=seed, facing=facing)
+    if keep is not None:
+        keep.extend(rgb for rgb, _ in pairs[:TIMED_FRAMES])
     roi = RoiConfig()
     ipm = build_ipm_lookup(camera, x_min_m=roi.x_min_m, length_m=roi.length_m, width_m=roi.width_m)
     roi_mask = np.zeros(camera.width * camera.height, bool)
@@ -111,16 +121,18 @@ def evaluate_world(seg, spec: str, *, frames: int, seed: int, rng, facing: Cls |
     return entry, draws, paired
 
 
-def speed(seg, *, repeats: int, rng) -> dict:
+def speed(seg, frames: list, *, repeats: int) -> dict:
+    """p50/p95 of `segment_model_size` (with its thread's CPU time) and of `segment()` over
+    `repeats` calls on the rendered `frames` in turn, after 5 warm-up calls."""
     w, h = seg.input_size
-    small = rng.integers(0, 255, (h, w, 3), dtype=np.uint8)
-    big = rng.integers(0, 255, (360, 640, 3), dtype=np.uint8)
     model_ms, model_cpu_ms, full_ms = [], [], []
     for i in range(repeats + 5):
+        frame = frames[i % len(frames)]
+        small = frame if frame.shape[:2] == (h, w) else cv2.resize(frame, (w, h))
         t0, c0 = time.perf_counter(), time.thread_time()
         seg.segment_model_size(small)
         t1, c1 = time.perf_counter(), time.thread_time()
-        seg.segment(big)
+        seg.segment(frame)
         t2 = time.perf_counter()
         if i >= 5:  # warm-up
             model_ms.append((t1 - t0) * 1e3)
@@ -129,6 +141,8 @@ def speed(seg, *, repeats: int, rng) -> dict:
     pct = lambda v, q: round(float(np.percentile(v, q)), 2)  # noqa: E731
     return {
         "input_size": list(seg.input_size), "threads": 1, "load_avg_1min": os.getloadavg()[0],
+        "frames": "held-out route frames", "distinct_frames": len(frames),
+        "sky_rows": seg.sky_rows,
         "ms_p50": pct(model_ms, 50), "ms_p95": pct(model_ms, 95),
         # CPU time of the (single) inference thread: robust to other processes on the machine
         "cpu_ms_p50": pct(model_cpu_ms, 50), "cpu_ms_p95": pct(model_cpu_ms, 95),
@@ -136,31 +150,44 @@ def speed(seg, *, repeats: int, rng) -> dict:
     }
 
 
+def nominal_sky_fraction(margin_deg: float) -> float:
+    """The share of the benchmark camera's rows that the product leaves out (sky_rows) at
+    `margin_deg`; 0 for a negative margin."""
+    camera = camera_from_config(CameraConfig())
+    return sky_rows(camera, margin_deg) / camera.height if margin_deg >= 0 else 0.0
+
+
 def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES,
-        baseline_path: str | None = None, baseline_unrefined: bool = False) -> dict:
+        baseline_path: str | None = None, baseline_unrefined: bool = False,
+        sky_margin_deg: float | None = None) -> dict:
     import onnxruntime
 
-    seg = get_segmenter("onnx", model_path=model_path, intra_op_threads=1)
+    if sky_margin_deg is None:
+        sky_margin_deg = SegmentationConfig().sky_margin_deg
+    sky = nominal_sky_fraction(sky_margin_deg)
+    seg = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, sky_fraction=sky)
     # the model as the mapping vehicles run it: paint it is unsure of left unknown
-    gated = get_segmenter("onnx", model_path=model_path, intra_op_threads=1,
+    gated = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, sky_fraction=sky,
                           min_margin=VehicleConfig().paint_min_margin)
     baseline = (get_segmenter("onnx", model_path=baseline_path, intra_op_threads=1,
+                              sky_fraction=sky,
                               **({"refine": {}} if baseline_unrefined else {}))
                 if baseline_path else None)
     rng, paired_rng = np.random.default_rng(0), np.random.default_rng(1)
     report = {
         "model": seg.name, "model_bytes": Path(model_path or DEFAULT_MODEL).stat().st_size,
         "refine": seg.refine,  # paint borders re-decided on the image ({}: off)
+        "sky_margin_deg": sky_margin_deg, "sky_rows": seg.sky_rows,  # rows not segmented
         "python": platform.python_version(), "onnxruntime": onnxruntime.__version__,
-        "speed": speed(seg, repeats=30 if quick else 200, rng=rng),
         "targets": TARGETS, "worlds": {},
     }
+    timed = []  # route frames for the speed measurement
     worlds, draws, paired = heldout_worlds(), {}, {}
     for name, spec in worlds[:2] if quick else worlds:
         logger.info("rendering and segmenting %s", name)
         report["worlds"][name], draws[name], paired[name] = evaluate_world(
             seg, spec, frames=10 if quick else frames, seed=1, rng=rng, baseline=baseline,
-            paired_rng=paired_rng, gated=gated)
+            paired_rng=paired_rng, gated=gated, keep=timed)
     report["iou"] = _mean_over_worlds(report["worlds"], "iou")
     report["paint_gate"] = {"min_margin": gated.min_margin,
                             **_paint_gate_means(report["worlds"])}
@@ -189,7 +216,10 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
                               "iou": base_iou,
                               "diff": _diff(report["iou"], base_iou),
                               "diff_ci90": bootstrap_interval(_means_of_draws(paired))}
-    report["ms_p50"], report["ms_p95"] = report["speed"]["ms_p50"], report["speed"]["ms_p95"]
+    if timed:
+        logger.info("timing on %d route frames", len(timed))
+        report["speed"] = speed(seg, timed, repeats=30 if quick else 200)
+        report["ms_p50"], report["ms_p95"] = report["speed"]["ms_p50"], report["speed"]["ms_p95"]
     return report
 
 
@@ -239,13 +269,17 @@ def main(argv=None) -> int:
     parser.add_argument("--baseline-unrefined", action="store_true",
                         help="score the baseline without its paint-border refinement (with "
                              "--baseline the same file: what the refinement buys)")
+    parser.add_argument("--sky-margin-deg", type=float, default=None,
+                        help="leave out the rows above rays rising this far above level, as the "
+                             "product does (default: segmentation.sky_margin_deg; -1: none)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    report = run(args.quick, args.model, args.frames, args.baseline, args.baseline_unrefined)
+    report = run(args.quick, args.model, args.frames, args.baseline, args.baseline_unrefined,
+                 args.sky_margin_deg)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "segmentation.json").write_text(json.dumps(report, indent=2))
-    shown = {k: report[k] for k in ("iou", "iou_roi", "speed")}
+    shown = {k: report.get(k) for k in ("iou", "iou_roi", "speed")}
     shown["stop_facing"] = report.get("stop_facing", {}).get("iou")
     shown["sign_facing"] = report.get("sign_facing", {}).get("iou")
     if "baseline" in report:

@@ -10,6 +10,7 @@ TwinLiteNet from ../shared/data) on the colourised frames. Also reports the pose
 run and, when ../shared/data exists, the pose graph on the real comma2k19 drive."""
 
 import argparse
+import dataclasses
 import json
 import logging
 import os
@@ -24,7 +25,13 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from common.classes import colorize  # noqa: E402
-from common.segmentation import DEFAULT_MODEL, GroundTruthSegmenter, get_segmenter  # noqa: E402
+from common.config import SegmentationConfig  # noqa: E402
+from common.segmentation import (  # noqa: E402
+    DEFAULT_MODEL,
+    GroundTruthSegmenter,
+    configured_onnx,
+    get_segmenter,
+)
 from services.vehicle.mapper import VehicleMapper  # noqa: E402
 from services.vehicle.node import StageTimer, map_log, pose_errors  # noqa: E402
 from tests.vehicle.synthetic import LabelRenderer, centreline, drive, mapping_camera, road_world  # noqa: E402
@@ -96,9 +103,10 @@ def _one_core():
         return None
 
 
-def _onnx_segmenter():
-    if DEFAULT_MODEL.exists():
-        return get_segmenter("onnx", intra_op_threads=2), "roadseg"
+def _onnx_segmenter(camera):
+    if DEFAULT_MODEL.exists():  # as the vehicles run it: the camera's sky rows left out
+        cfg = dataclasses.replace(SegmentationConfig(), intra_op_threads=2)
+        return configured_onnx(cfg, camera=camera), "roadseg"
     twin = SHARED / "models" / "twinlitenet" / "twinlitenet.onnx"
     if twin.exists():
         return get_segmenter("onnx", model_path=twin, intra_op_threads=2), "twinlitenet"
@@ -134,7 +142,7 @@ def run(quick: bool = False) -> dict:
     }
 
     # 2. with the ONNX model on two cores
-    segmenter, model = _onnx_segmenter()
+    segmenter, model = _onnx_segmenter(camera)
     if segmenter is not None:
         n = 20 if quick else 80
         images = [colorize(lab) for lab in log._labels[:n]]
