@@ -22,8 +22,9 @@ p50/p95 ms of `segment_model_size` (resize, network, upsampling, argmax, border 
 the model's input size with one onnxruntime thread, and of the whole `segment()` call at full
 size, on the held-out route frames themselves (up to TIMED_FRAMES per world, in turn): until
 2026-11-25 it timed random noise, which has almost no paint borders to upsample and refine
-and so read 12 ms where road frames take 14.5 ms. `paint_gate`: precision and recall in the ROI of the model as the
-mapping vehicles run it (paint it is unsure of left unknown: vehicle.paint_min_margin) against
+and so read 12 ms where road frames take 14.5 ms. `paint_gate`: precision and recall in the
+ROI of the model as the mapping vehicles run it (paint it is unsure of left unknown:
+vehicle.paint_min_margin) against
 the plain argmax, per world and their mean. With `--baseline`, a second model is scored on the
 same frames, and `baseline.diff` (and each world's) is the model's IoU minus the baseline's,
 with a paired bootstrap interval (`diff_ci90`: both scored on each draw of frames), to compare

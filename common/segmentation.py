@@ -7,8 +7,8 @@ one verb: `segment(image_rgb, labels_true=None) -> labels`. `get_segmenter(...)`
 import json
 import logging
 import os
-from functools import partial
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -142,7 +142,6 @@ class OnnxSegmenter(Segmenter):
         sky_fraction: float = 0.0,
         name: str | None = None,
     ):
-
         path = Path(model_path)
         if not path.is_file():
             raise ConfigError(f"segmentation model not found: {path}")
@@ -160,7 +159,8 @@ class OnnxSegmenter(Segmenter):
         h = self.input_size[1]
         self.sky_rows = int(sky_fraction * h) // SKY_ROW_STEP * SKY_ROW_STEP  # at input size
         height = inp.shape[2]
-        if isinstance(height, str):  # dynamic: fixed here, so onnxruntime plans it as static
+        if isinstance(height, str):  # dynamic: a second session with the height fixed, so
+            # onnxruntime plans the graph as a static one
             self._session = _session(path, intra_op_threads, {height: h - self.sky_rows})
         elif self.sky_rows:
             logger.warning("%s: fixed input height %s, so every row is segmented "

@@ -604,7 +604,6 @@ def reexport_onnx(src, dst) -> dict:
     metadata kept), checked against `src` on random frames -> {max_abs_diff, argmax_agreement}.
     For files exported before export_onnx changed (a fixed input height before 2026-11-25)."""
     import onnxruntime as ort
-    import torch
 
     from services.segtrain.net import RoadSegNet, load_onnx_weights
 

@@ -141,7 +141,12 @@ def test_min_margin_drops_exactly_the_marking_pixels_the_model_is_unsure_of():
 def test_upsampled_argmax_equals_the_resize_then_argmax(rng):
     import cv2
 
-    from common.segmentation import _resize_channels, argmax_channels, upsampled_argmax, upsampled_at
+    from common.segmentation import (
+        _resize_channels,
+        argmax_channels,
+        upsampled_argmax,
+        upsampled_at,
+    )
 
     # blobs of classes (as logits are: smooth, with a few thin structures) and pure noise
     smooth = cv2.resize(rng.normal(0, 3, (6, 12, 20)).transpose(1, 2, 0), (33, 19),
