@@ -164,6 +164,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="share of each batch's pixels, those with the largest loss, that the "
                         "cross-entropy averages over (online hard example mining; default 1: "
                         "all pixels)")
+    p.add_argument("--mirror-consistency", type=float, default=0.0, metavar="WEIGHT",
+                   help="half of each batch is the other half mirrored, and this weight x the "
+                        "divergence of each frame's and its mirror's class probabilities from "
+                        "their average joins the loss (default 0: off)")
     _common(p)
 
     p = sub.add_parser("dump-config", help="print the effective configuration as TOML")

@@ -43,6 +43,7 @@ def train_command(args, cfg) -> int:
     if args.turn_prob is None:
         args.turn_prob = seg_data.TURN_PROB
     check_hard_pixels(args.hard_pixels)  # before minutes of rendering
+    check_mirror(args.mirror_consistency, args.batch)
     if args.reexport:
         logger.info("%s -> %s: %s", args.reexport, out / "roadseg.onnx",
                     reexport_onnx(args.reexport, out / "roadseg.onnx"))
@@ -73,7 +74,7 @@ def train_command(args, cfg) -> int:
     result = train_and_export(frames, labels, out, seed=args.seed, train_s=train_s,
                               device=args.device, batch=args.batch, init=args.init,
                               iou_loss=args.iou_loss, arch=args.arch,
-                              hard_pixels=args.hard_pixels,
+                              hard_pixels=args.hard_pixels, mirror=args.mirror_consistency,
                               crop_hw=crop_size(args.crop, frames.shape[1:3]))
     result["render_s"] = round(render_s, 1)
     return _finish(args, out, result, t_start)
@@ -116,6 +117,7 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
                                   device=args.device, batch=args.batch, init=args.init,
                                   iou_loss=args.iou_loss, arch=args.arch, more=stream.take,
                                   capacity=args.frames, hard_pixels=args.hard_pixels,
+                                  mirror=args.mirror_consistency,
                                   crop_hw=crop_size(args.crop, frames.shape[1:3]))
     finally:
         stream.close()
@@ -139,6 +141,8 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
         + ([f"--turn-prob {args.turn_prob:g}"] if args.turn_prob != seg_data.TURN_PROB else [])
         + ([f"--iou-loss {args.iou_loss:g}"] if args.iou_loss else [])
         + ([f"--hard-pixels {args.hard_pixels:g}"] if args.hard_pixels < 1.0 else [])
+        + ([f"--mirror-consistency {args.mirror_consistency:g}"]
+           if args.mirror_consistency else [])
         + ([f"--crop {args.crop}"] if args.crop != DEFAULT_CROP else []))
     result["total_s"] = round(time.perf_counter() - t_start, 1)
     (out / "train_log.json").write_text(json.dumps(result, indent=2))
@@ -160,12 +164,14 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
                      device: str = "cpu", batch: int = BATCH, init: str | None = None,
                      iou_loss: float = 0.0, arch: str = "s", more=None,
                      capacity: int = 0, crop_hw: tuple[int, int] = CROP_HW,
-                     hard_pixels: float = 1.0) -> dict:
+                     hard_pixels: float = 1.0, mirror: float = 0.0) -> dict:
     """Train RoadSegNet of size `arch` (archs.ARCHS) for train_s seconds on `device` (cpu: 2
     threads; cuda: the frames live on the GPU), from scratch or, with `init`, from a trained
     model (fine-tuning at LR_FINETUNE; an exported ONNX file's folded batch norms are kept
     frozen), on class-weighted cross-entropy (over the `hard_pixels` share of each batch's
-    pixels with the largest loss: hard_pixel_loss) plus `iou_loss` x soft_jaccard_loss; with `more`
+    pixels with the largest loss: hard_pixel_loss) plus `iou_loss` x soft_jaccard_loss, plus,
+    with `mirror` > 0, `mirror` x mirror_consistency_loss (half of each batch mirrors the
+    other half); with `more`
     (FrameStream.take) frames keep arriving while it trains, up to `capacity` in all;
     batches are random `crop_hw` (H, W) windows of the frames (the whole frame when it is the
     frame's size); export to ONNX (on the CPU, auxiliary classes folded into none) and check
@@ -194,6 +200,7 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
     lr_max = LR_FINETUNE if init else LR_MAX
     opt = torch.optim.AdamW(model.parameters(), lr=lr_max, weight_decay=1e-4)
     check_hard_pixels(hard_pixels)
+    check_mirror(mirror, batch)
     class_w = torch.tensor(weights, dtype=torch.float32, device=dev)
     loss_fn = torch.nn.CrossEntropyLoss(weight=class_w)
     logger.info("training %d params on %d frames (%d held for validation), weights %s%s",
@@ -212,15 +219,20 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
             x_all[n_loaded:n_loaded + k] = torch.from_numpy(got[0][:k]).to(dev).permute(0, 3, 1, 2)
             y_all[n_loaded:n_loaded + k] = torch.from_numpy(got[1][:k]).to(dev)
             n_loaded += k
-        idx = torch.from_numpy(rng.integers(n_val, n_loaded, batch)).to(dev)
+        n_drawn = batch // 2 if mirror else batch  # with `mirror`, the rest are their mirrors
+        idx = torch.from_numpy(rng.integers(n_val, n_loaded, n_drawn)).to(dev)
         xb, yb, top = _crop_batch(x_all[idx], y_all[idx], rng, crop_hw)
         model.crop_rows = (top, x_all.shape[2])
         xb, yb = augment(xb, yb.long(), rng)
+        if mirror:  # each frame and its mirror image, with the same photometric draw
+            xb, yb = torch.cat([xb, xb.flip(-1)]), torch.cat([yb, yb.flip(-1)])
         logits = model(xb)
         loss = (loss_fn(logits, yb) if hard_pixels >= 1.0
                 else hard_pixel_loss(logits, yb, class_w, hard_pixels, rng))
         if iou_loss:
             loss = loss + iou_loss * soft_jaccard_loss(logits, yb)
+        if mirror:
+            loss = loss + mirror * mirror_consistency_loss(logits)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -261,6 +273,7 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
         "model_bytes": model_path.stat().st_size, "seed": seed, "device": device,
         "batch": batch, "init": init, "lr_max": lr_max, "logit_bias": bias,
         "iou_loss_weight": iou_loss, "hard_pixels": hard_pixels, "arch": arch,
+        "mirror_consistency": mirror,
         "refine": refine,
         "crop_hw": list(crop_hw),
         "val_iou_town_runtime": val_runtime,
@@ -328,6 +341,32 @@ def soft_jaccard_loss(logits, y):
     iou = inter / (prob.sum((0, 2, 3)) + t_sum - inter + 1.0)
     present = (t_sum > 0).to(prob.dtype)  # absent classes: no term (no device sync)
     return ((1.0 - iou) * present).sum() / present.sum().clamp(min=1.0)
+
+
+def check_mirror(weight: float, batch: int) -> None:
+    """--mirror-consistency needs a weight >= 0 and, when on, an even batch (frame + mirror)."""
+    if weight < 0 or (weight > 0 and batch % 2):
+        raise ConfigError(f"--mirror-consistency {weight:g} needs a weight >= 0 and an even "
+                          f"--batch (each frame and its mirror), got batch {batch}")
+
+
+def mirror_consistency_loss(logits):
+    """Logits (2n, C, H, W) of n frames then their n mirror images -> the mean over pixels of
+    KL(m || p) + KL(m || q), where p is a frame's class distribution, q its mirror's mirrored
+    back, and m = (p + q) / 2 held fixed: both are pulled towards their average, as a
+    mirrored second pass averaged in at test time would do (MODEL_CARD: +0.014 held-out lane
+    line for a second pass), so that one pass may carry some of it."""
+    import torch
+    from torch.nn import functional as F
+
+    n = logits.shape[0] // 2
+    log_p = F.log_softmax(logits[:n], dim=1)
+    log_q = F.log_softmax(logits[n:], dim=1).flip(-1)
+    with torch.no_grad():
+        m = 0.5 * (log_p.exp() + log_q.exp())
+        log_m = torch.log(m.clamp_min(1e-8))
+    kl = (m * (2.0 * log_m - log_p - log_q)).sum(1)
+    return kl.mean()
 
 
 def check_hard_pixels(share: float) -> None:
@@ -746,7 +785,10 @@ def _crop_text(result: dict) -> str:
 def _loss_text(result: dict) -> str:
     w, hard = result.get("iou_loss_weight"), result.get("hard_pixels", 1.0)
     text = f" over the {100 * hard:g} % hardest pixels of each batch" if hard < 1.0 else ""
-    return text + (f" plus {w:g} x soft-Jaccard loss on the paint and curb classes" if w else "")
+    text += f" plus {w:g} x soft-Jaccard loss on the paint and curb classes" if w else ""
+    mirror = result.get("mirror_consistency", 0.0)
+    return text + (f" plus {mirror:g} x mirror consistency (half of each batch mirrored)"
+                   if mirror else "")
 
 
 def _init_text(result: dict) -> str:

@@ -1,5 +1,5 @@
-"""The training loss's soft-Jaccard term and hard-pixel cross-entropy (needs the optional torch
-extra: `.[train]`)."""
+"""The training loss's soft-Jaccard term, hard-pixel cross-entropy and mirror consistency (needs
+the optional torch extra: `.[train]`)."""
 
 import numpy as np
 import pytest
@@ -8,7 +8,11 @@ from common.classes import Cls
 
 torch = pytest.importorskip("torch", reason="training tests need the .[train] extra (torch)")
 
-from services.segtrain.train import hard_pixel_loss, soft_jaccard_loss  # noqa: E402
+from services.segtrain.train import (  # noqa: E402
+    hard_pixel_loss,
+    mirror_consistency_loss,
+    soft_jaccard_loss,
+)
 
 CLASSES = 7  # ours + the curb training class
 
@@ -77,4 +81,29 @@ def test_a_bad_hard_pixel_share_is_refused_before_rendering(tmp_path, capsys):
 
     assert main(["train-seg", "--out", str(tmp_path), "--hard-pixels", "1.5"]) == 1
     assert "--hard-pixels must be a share in (0, 1]" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # nothing rendered, nothing written
+
+
+def test_mirror_consistency_is_zero_for_mirror_twins_and_pulls_both_to_their_average():
+    torch.manual_seed(0)
+    frames = torch.randn(2, CLASSES, 6, 10)
+    twins = torch.cat([frames, frames.flip(-1)])  # each frame's mirror predicted as its mirror
+    assert float(mirror_consistency_loss(twins)) < 1e-6
+    # a mirror that disagrees costs; the gradient moves each side towards the other
+    other = torch.randn(2, CLASSES, 6, 10)
+    logits = torch.cat([frames, other]).requires_grad_(True)
+    loss = mirror_consistency_loss(logits)
+    assert float(loss) > 0.01
+    loss.backward()
+    step = logits.detach() - 0.5 * logits.grad
+    assert float(mirror_consistency_loss(step)) < float(loss)
+
+
+def test_mirror_consistency_needs_an_even_batch(tmp_path, capsys):
+    from services.cli import main
+
+    assert main(["train-seg", "--out", str(tmp_path), "--mirror-consistency", "1",
+                 "--batch", "7"]) == 1
+    assert "needs a weight >= 0 and an even --batch" in capsys.readouterr().err
+    assert main(["train-seg", "--out", str(tmp_path), "--mirror-consistency", "-1"]) == 1
     assert not any(tmp_path.iterdir())  # nothing rendered, nothing written
