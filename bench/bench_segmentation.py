@@ -47,7 +47,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common.camera import build_ipm_lookup, camera_from_config, sky_rows  # noqa: E402
+from common.camera import build_ipm_lookup, camera_from_config, sky_fraction  # noqa: E402
 from common.classes import NAMES, Cls  # noqa: E402
 from common.config import CameraConfig, RoiConfig, SegmentationConfig, VehicleConfig  # noqa: E402
 from common.segmentation import DEFAULT_MODEL, get_segmenter  # noqa: E402
@@ -151,13 +151,6 @@ def speed(seg, frames: list, *, repeats: int) -> dict:
     }
 
 
-def nominal_sky_fraction(margin_deg: float) -> float:
-    """The share of the benchmark camera's rows that the product leaves out (sky_rows) at
-    `margin_deg`; 0 for a negative margin."""
-    camera = camera_from_config(CameraConfig())
-    return sky_rows(camera, margin_deg) / camera.height if margin_deg >= 0 else 0.0
-
-
 def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES,
         baseline_path: str | None = None, baseline_unrefined: bool = False,
         sky_margin_deg: float | None = None) -> dict:
@@ -165,7 +158,8 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
 
     if sky_margin_deg is None:
         sky_margin_deg = SegmentationConfig().sky_margin_deg
-    sky = nominal_sky_fraction(sky_margin_deg)
+    # the rows the product leaves out for render_heldout's camera
+    sky = sky_fraction(camera_from_config(CameraConfig()), sky_margin_deg)
     seg = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, sky_fraction=sky)
     # the model as the mapping vehicles run it: paint it is unsure of left unknown
     gated = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, sky_fraction=sky,

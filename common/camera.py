@@ -132,6 +132,15 @@ def sky_rows(camera: CameraModel, margin_deg: float) -> int:
     return int(np.clip(math.floor(np.nanmin(uv[inside, 1])), 0, camera.height))
 
 
+def sky_fraction(camera: CameraModel, margin_deg: float) -> float:
+    """sky_rows as a share of the image height, for OnnxSegmenter's `sky_fraction`: 0 for a
+    negative margin (every row segmented), at most 0.95 (a camera that sees almost only sky
+    still has its bottom rows segmented)."""
+    if margin_deg < 0:
+        return 0.0
+    return min(sky_rows(camera, margin_deg) / camera.height, 0.95)
+
+
 @dataclass(frozen=True)
 class IpmLookup:
     """Pixel -> ground point table for the pixels inside the ROI, built once per calibration.

@@ -485,11 +485,9 @@ def configured_onnx(seg, *, min_margin: float = 0.0, camera=None) -> OnnxSegment
     each set their own (vehicle.paint_min_margin, localizer.paint_min_margin). Given the
     `camera` (CameraModel) and `seg.sky_margin_deg` >= 0, the rows above rays rising that far
     above level are not segmented (OnnxSegmenter's sky_fraction)."""
-    from common.camera import sky_rows
+    from common.camera import sky_fraction
 
-    sky = 0.0
-    if camera is not None and seg.sky_margin_deg >= 0:
-        sky = sky_rows(camera, seg.sky_margin_deg) / camera.height
+    sky = 0.0 if camera is None else sky_fraction(camera, seg.sky_margin_deg)
     return get_segmenter("onnx", model_path=seg.model_path,
                          intra_op_threads=seg.intra_op_threads, min_margin=min_margin,
-                         sky_fraction=min(sky, 0.95))
+                         sky_fraction=sky)
