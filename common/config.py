@@ -98,6 +98,11 @@ class SegmentationConfig:
     # every row is segmented. 10: the top 48 of 360 rows of the default camera, 2.6 ms a
     # frame less; the benchmark's IoU moved by 0.0015 or less (common/models/MODEL_CARD.md)
     sky_margin_deg: float = 10.0
+    # paint borders decided by the model's learned border classifier (metadata `border_net`,
+    # common.segmentation.BorderNet) instead of its brightness rule (`refine`): on the
+    # benchmark's frames +0.010 lane-line, +0.012 crosswalk, +0.015 stop-line IoU, for about
+    # 1.5 ms a frame more (p95: 3 ms, past the 15 ms budget), so off unless asked for
+    border_net: bool = False
 
 
 @dataclass(frozen=True)

@@ -138,6 +138,7 @@ class OnnxSegmenter(Segmenter):
         intra_op_threads: int = 1,
         upsample: str = "nearest",
         refine: dict | None = None,
+        border_net: dict | bool | None = None,
         min_margin: float = 0.0,
         sky_fraction: float = 0.0,
         name: str | None = None,
@@ -194,6 +195,18 @@ class OnnxSegmenter(Segmenter):
         if unknown:
             raise ConfigError(f"unknown refine setting(s) {sorted(unknown)}; "
                               f"known: {sorted(REFINE_DEFAULTS)}")
+        # the learned border classifier (BorderNet), fitted on town frames by services/segtrain,
+        # decides the paint borders in place of `refine` where the labels are at the model's
+        # input size and come from one head: True takes the model's own (metadata
+        # `border_net`), a dict is a spec; None or {}: off (a millisecond or two a frame more)
+        if border_net is True:
+            if "border_net" not in meta or head_map is not None:
+                raise ConfigError(f"{path}: no border classifier for its own classes (metadata "
+                                  "`border_net`; roadmap train-seg --border-only fits one)")
+            border_net = meta["border_net"]
+        self.border_net = BorderNet(border_net) if border_net else None
+        if self.border_net and len(self.priority) != 1:
+            raise ConfigError("border_net needs a model with one output head")
 
     def _heads(self, head_map, priority):
         outputs = self._session.get_outputs()
@@ -232,12 +245,19 @@ class OnnxSegmenter(Segmenter):
 
     def segment_model_size(self, image_rgb: np.ndarray, out_size=None) -> np.ndarray:
         """Labels (h, w) uint8 at the model's input size, or at out_size (W, H) when the logits
-        are upsampled bilinearly before the argmax (smoother class boundaries). Logits coarser
-        than the input (our model's are at 1/2) are always upsampled bilinearly before the
-        argmax (OpenCV: half-pixel centres, as torch's align_corners=False), unless they are
-        sub-pixel logits (metadata `subpixel`): labels at the input size, resized to out_size
-        (nearest) when one is given. Then the paint borders are re-decided on the image
-        (`refine`, refine_paint_borders) when the model's settings ask for it."""
+        are upsampled bilinearly before the argmax (smoother class boundaries): network_labels,
+        then the paint borders re-decided on the image (refined_borders)."""
+        small, labels, score_at = self.network_labels(image_rgb, out_size)
+        return self.refined_borders(small, image_rgb, labels, score_at)
+
+    def network_labels(self, image_rgb: np.ndarray, out_size=None):
+        """(the image at the model's input size, labels as the network gives them, score_at).
+
+        Logits coarser than the input (our model's are at 1/2) are upsampled bilinearly before
+        the argmax (OpenCV: half-pixel centres, as torch's align_corners=False), unless they
+        are sub-pixel logits (metadata `subpixel`): labels at the input size, resized to
+        out_size (nearest) when one is given. `score_at(ys, xs)` -> (C, N) gives the upsampled
+        scores of the last head at label pixels (ys, xs) (None for sub-pixel logits)."""
         w, h = self.input_size
         small = image_rgb  # resized once, for the network and the refinement
         if small.shape[:2] != (h, w):
@@ -246,13 +266,14 @@ class OnnxSegmenter(Segmenter):
         out_w, out_h = out_size or (w, h)
         sky = round(self.sky_rows * out_h / h)  # rows labelled 0, at the output size
         band = (out_w, out_h - sky)  # (W, H) of the labels the network gives
-        labels = None
+        labels, score_at = None, None
         for head, logits in zip(self.priority, outs, strict=True):
             scores = logits[0]
             if self.subpixel > 1:
                 arg = _subpixel_argmax(scores, self.subpixel)
                 if band != arg.shape[::-1]:
                     arg = cv2.resize(arg, band, interpolation=cv2.INTER_NEAREST)
+                score_at = None
             elif band == (2 * scores.shape[2], 2 * scores.shape[1]):
                 arg = upsampled_argmax(scores)  # our model: only the mixed 2x2 blocks
                 score_at = partial(upsampled_at, scores)
@@ -277,9 +298,19 @@ class OnnxSegmenter(Segmenter):
             full = np.zeros((out_h, out_w), np.uint8)
             full[sky:] = labels
             labels = full
-        labels = labels.astype(np.uint8)
+            if score_at is not None:
+                score_at = partial(_rows_below, score_at, sky)
+        return small, labels.astype(np.uint8), score_at
+
+    def refined_borders(self, small, image_rgb, labels, score_at) -> np.ndarray:
+        """The paint borders of network_labels' `labels` re-decided on the image: by the
+        learned border classifier (`border_net`) where the labels are at the model's input
+        size, else by their brightness (`refine`, refine_paint_borders) when the model's
+        settings ask for it."""
+        if self.border_net and score_at is not None and labels.shape == small.shape[:2]:
+            return self.border_net(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), labels, score_at)
         if self.refine:
-            img = small if labels.shape == (h, w) else image_rgb
+            img = small if labels.shape == small.shape[:2] else image_rgb
             if img.shape[:2] != labels.shape:  # labels at an out_size other than the frame's
                 img = cv2.resize(img, labels.shape[::-1], interpolation=cv2.INTER_AREA)
             labels = refine_paint_borders(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), labels,
@@ -315,6 +346,37 @@ REFINE_DEFAULTS = {"window": 5, "level": 0.6, "min_contrast": 10.0}
 _K3 = np.ones((3, 3), np.uint8)
 
 
+def paint_border_pixels(labels: np.ndarray) -> np.ndarray:
+    """Flat indices (ascending) of the pixels on a paint border: one pixel either side of
+    where a marking class meets road or none."""
+    paint = (labels >= Cls.LANE_LINE).view(np.uint8)
+    return np.flatnonzero(cv2.dilate(paint, _K3) != cv2.erode(paint, _K3))
+
+
+def _box_means(gray: np.ndarray, labels: np.ndarray, border: np.ndarray, window: int):
+    """At each border pixel (flat indices, ascending), over the `window` x `window` box around
+    it (cut at the image's edges): (pixels labelled road, pixels of paint, mean grey of the
+    road pixels, mean grey of the paint pixels), float32 (N,) each; a mean is 0 where its
+    box holds none. Box sums from one integral image of the band of rows the boxes reach
+    (paint lies below the horizon: the band is about half the frame)."""
+    h, w = labels.shape
+    r = int(window) // 2
+    ys, xs = np.divmod(border, w)
+    y0, y1 = max(int(ys[0]) - r, 0), min(int(ys[-1]) + r + 1, h)  # flat order: ys ascending
+    road = (labels[y0:y1] == Cls.ROAD).view(np.uint8)
+    paint_band, gray_band = (labels[y0:y1] >= Cls.LANE_LINE).view(np.uint8), gray[y0:y1]
+    sums = cv2.integral(cv2.merge([road, paint_band, gray_band * road, gray_band * paint_band]))
+    sums = sums.reshape(-1, 4)
+    ys = ys - y0
+    top, bottom = np.maximum(ys - r, 0) * (w + 1), np.minimum(ys + r + 1, y1 - y0) * (w + 1)
+    left, right = np.maximum(xs - r, 0), np.minimum(xs + r + 1, w)
+    box = (np.take(sums, bottom + right, axis=0) - np.take(sums, top + right, axis=0)
+           - np.take(sums, bottom + left, axis=0) + np.take(sums, top + left, axis=0))
+    box = box.astype(np.float32)
+    return (box[:, 0], box[:, 1], box[:, 2] / np.maximum(box[:, 0], 1),
+            box[:, 3] / np.maximum(box[:, 1], 1))
+
+
 def refine_paint_borders(gray: np.ndarray, labels: np.ndarray, *, window: int = 5,
                          level: float = 0.6, min_contrast: float = 10.0) -> np.ndarray:
     """Labels with the pixels on a paint border (one pixel either side of where a marking
@@ -328,29 +390,11 @@ def refine_paint_borders(gray: np.ndarray, labels: np.ndarray, *, window: int = 
     paint beside it. Only where p exceeds r by `min_contrast` grey levels and the box holds
     road. About 0.9 ms for a 640x360 road frame: box sums from one integral image, read at the
     border pixels only."""
-    paint = (labels >= Cls.LANE_LINE).view(np.uint8)
-    border = np.flatnonzero(cv2.dilate(paint, _K3) != cv2.erode(paint, _K3))
+    border = paint_border_pixels(labels)
     if len(border) == 0:
         return labels
-    h, w = labels.shape
-    r = int(window) // 2
-    ys, xs = np.divmod(border, w)
-    # box sums from one integral image of the band of rows the boxes reach (paint lies below
-    # the horizon: the band is about half the frame)
-    y0, y1 = max(int(ys[0]) - r, 0), min(int(ys[-1]) + r + 1, h)  # flat order: ys ascending
-    road = (labels[y0:y1] == Cls.ROAD).view(np.uint8)
-    paint_band, gray_band = paint[y0:y1], gray[y0:y1]
-    sums = cv2.integral(cv2.merge([road, paint_band, gray_band * road, gray_band * paint_band]))
-    sums = sums.reshape(-1, 4)
-    ys = ys - y0
-    top, bottom = np.maximum(ys - r, 0) * (w + 1), np.minimum(ys + r + 1, y1 - y0) * (w + 1)
-    left, right = np.maximum(xs - r, 0), np.minimum(xs + r + 1, w)
-    box = (np.take(sums, bottom + right, axis=0) - np.take(sums, top + right, axis=0)
-           - np.take(sums, bottom + left, axis=0) + np.take(sums, top + left, axis=0))
-    box = box.astype(np.float32)
-    road_grey = box[:, 2] / np.maximum(box[:, 0], 1)
-    paint_grey = box[:, 3] / np.maximum(box[:, 1], 1)
-    decided = (box[:, 0] > 0) & (paint_grey > road_grey + min_contrast)
+    n_road, _, road_grey, paint_grey = _box_means(gray, labels, border, window)
+    decided = (n_road > 0) & (paint_grey > road_grey + min_contrast)
     bright = np.take(gray, border) > road_grey + level * (paint_grey - road_grey)
     was_paint = np.take(labels, border) >= Cls.LANE_LINE
     out = labels.copy()
@@ -358,8 +402,135 @@ def refine_paint_borders(gray: np.ndarray, labels: np.ndarray, *, window: int = 
     flat[border[decided & was_paint & ~bright]] = Cls.ROAD
     grow = border[decided & ~was_paint & bright]
     if len(grow):  # the paint class beside it (the largest id where two meet)
+        paint = (labels >= Cls.LANE_LINE).view(np.uint8)
         flat[grow] = np.take(cv2.dilate(labels * paint, _K3), grow)
     return out
+
+
+class BorderNet:
+    """A learned classifier of paint-border pixels: the class of each pixel on a paint border
+    (paint_border_pixels) from its 5x5 neighbourhood in the image and in the labels and the
+    network's scores there (border_features), by a small multilayer perceptron (ReLU between
+    layers). Where refine_paint_borders thresholds one brightness, this one is fitted on
+    town frames (services/segtrain/border.py) to what the truth says at such pixels: edges a
+    pixel off, paint halos, worn gaps, the shading of curbs.
+
+    `spec` (the model's metadata `border_net`): {"layers": [{"w": (in, out) nested lists, "b":
+    (out,)}, ...], "max_margin": logits (optional: border pixels the network is surer of keep
+    its label)}. About 1 ms a 640x360 road frame (a few thousand
+    border pixels)."""
+
+    def __init__(self, spec: dict):
+        try:
+            self.layers = [(np.asarray(layer["w"], np.float32), np.asarray(layer["b"], np.float32))
+                           for layer in spec["layers"]]
+        except (KeyError, TypeError) as exc:
+            raise ConfigError(f"border_net: malformed spec ({exc!r})") from None
+        shapes = [w.shape for w, _ in self.layers]
+        if (not shapes or shapes[0][0] != BORDER_FEATURES or shapes[-1][1] != NUM_CLASSES
+                or any(a[1] != b[0] for a, b in zip(shapes, shapes[1:], strict=False))
+                or any(b.shape != (w.shape[1],) for w, b in self.layers)):
+            raise ConfigError(f"border_net: layer shapes {shapes} do not chain "
+                              f"{BORDER_FEATURES} features to {NUM_CLASSES} classes")
+        self.max_margin = float(spec.get("max_margin", np.inf))
+        # (out, in) weights and (out, 1) biases, for features as columns
+        self._columns = [(np.ascontiguousarray(w.T), b[:, None]) for w, b in self.layers]
+
+    def scores(self, features: np.ndarray) -> np.ndarray:
+        """(N, NUM_CLASSES) class scores of (N, BORDER_FEATURES) features, computed on their
+        transpose (border_features' own layout: contiguous feature rows)."""
+        x = features.T
+        for i, (w, b) in enumerate(self._columns):
+            x = w @ x
+            x += b
+            if i < len(self._columns) - 1:
+                np.maximum(x, 0, out=x)
+        return x.T
+
+    def __call__(self, gray: np.ndarray, labels: np.ndarray, score_at) -> np.ndarray:
+        border, scores = unsure_paint_border(labels, score_at, self.max_margin)
+        if len(border) == 0:
+            return labels
+        decided = self.scores(border_features(gray, labels, scores, border)).T
+        out = labels.copy()
+        out.reshape(-1)[border] = argmax_channels(np.ascontiguousarray(decided))
+        return out
+
+
+def unsure_paint_border(labels: np.ndarray, score_at, max_margin: float = np.inf):
+    """(flat indices, (C, N) network scores `score_at` gives there) of the paint-border
+    pixels whose winning class leads the runner-up by less than `max_margin` logits: the
+    pixels BorderNet decides (where the network is surer than that, the classifier agrees
+    with it almost always, and leaving them out saves a third of its time)."""
+    border = paint_border_pixels(labels)
+    if len(border) == 0:
+        return border, np.zeros((NUM_CLASSES, 0), np.float32)
+    scores = score_at(*np.divmod(border, labels.shape[1]))
+    if np.isfinite(max_margin):
+        unsure = _lead(scores) < max_margin
+        border, scores = border[unsure], scores[:, unsure]
+    return border, scores
+
+
+BORDER_PATCH = 2  # border_features: a (2 r + 1)^2 patch of grey and of paint around the pixel
+BORDER_BOX = 9  # and the mean grey of road and of paint in this box
+_PATCH = (2 * BORDER_PATCH + 1) ** 2
+BORDER_FEATURES = 2 * _PATCH + NUM_CLASSES + 4
+
+
+def border_features(gray: np.ndarray, labels: np.ndarray, scores: np.ndarray,
+                    border: np.ndarray) -> np.ndarray:
+    """(N, BORDER_FEATURES) float32 for BorderNet at border pixels (flat indices, ascending)
+    whose network scores are `scores` (C, N):
+    - the 5x5 grey patch, as (grey - r) / max(p - r, 10), clipped to [-3, 3], where r and p
+      are the mean grey of the road and of the paint pixels in the 9x9 box (r: the patch's
+      darkest grey where the box holds no road);
+    - the 5x5 patch of paint (1) and not (0) in the labels;
+    - the network's scores at the pixel less their maximum, floored at -8, / 4;
+    - (p - r) / 64, r / 128, and the shares of road and of paint in the box.
+    Patches reaching past the image's edges repeat its edge pixels. The array is the
+    transpose of a C-contiguous (BORDER_FEATURES, N) buffer: numpy reduces along a feature
+    block 50x faster in that layout than across a row of an (N, F) array."""
+    h, w = labels.shape
+    r = BORDER_PATCH
+    ys, xs = np.divmod(border, w)
+    n_road, n_paint, road_grey, paint_grey = _box_means(gray, labels, border, BORDER_BOX)
+    # the band of rows the patches reach, edges repeated r pixels out
+    y0, y1 = max(int(ys[0]) - r, 0), min(int(ys[-1]) + r + 1, h)
+    pad = (r - (int(ys[0]) - y0), r - (y1 - int(ys[-1]) - 1), r, r)
+    grey_band = cv2.copyMakeBorder(gray[y0:y1], *pad, cv2.BORDER_REPLICATE)
+    paint_band = cv2.copyMakeBorder((labels[y0:y1] >= Cls.LANE_LINE).view(np.uint8), *pad,
+                                    cv2.BORDER_REPLICATE)
+    width = w + 2 * r
+    offsets = (np.arange(-r, r + 1)[:, None] * width + np.arange(-r, r + 1)).reshape(-1, 1)
+    idx = offsets + ((ys - (int(ys[0]) - r)) * width + xs + r)  # (patch, N) in the padded band
+    out = np.empty((BORDER_FEATURES, len(border)), np.float32)
+    grey = out[:_PATCH]
+    patch = np.take(grey_band, idx)
+    grey[...] = patch
+    road_grey = np.where(n_road > 0, road_grey, patch.min(axis=0))
+    contrast = paint_grey - road_grey
+    grey -= road_grey
+    grey /= np.maximum(contrast, 10.0)
+    np.clip(grey, -3.0, 3.0, out=grey)
+    out[_PATCH:2 * _PATCH] = np.take(paint_band, idx)
+    rel = out[2 * _PATCH:2 * _PATCH + NUM_CLASSES]
+    rel[...] = scores
+    rel -= scores.max(axis=0)
+    np.maximum(rel, -8.0, out=rel)
+    rel *= 0.25
+    area = float(BORDER_BOX * BORDER_BOX)
+    stats = out[2 * _PATCH + NUM_CLASSES:]
+    np.multiply(contrast, 1.0 / 64.0, out=stats[0])
+    np.multiply(road_grey, 1.0 / 128.0, out=stats[1])
+    np.multiply(n_road, 1.0 / area, out=stats[2])
+    np.multiply(n_paint, 1.0 / area, out=stats[3])
+    return out.T
+
+
+def _rows_below(score_at, rows: int, ys, xs):
+    """score_at of labels that gained `rows` rows on top (the sky rows)."""
+    return score_at(np.asarray(ys) - rows, xs)
 
 
 def _unsure_paint_unknown(score_at, labels: np.ndarray, min_margin: float):
@@ -372,10 +543,19 @@ def _unsure_paint_unknown(score_at, labels: np.ndarray, min_margin: float):
         picked = score_at(ys, xs)
         if len(picked) < 2:  # a one-channel head has no runner-up to lead
             return labels
-        top2 = np.partition(picked, len(picked) - 2, axis=0)[-2:]
-        unsure = top2[1] - top2[0] < min_margin
+        unsure = _lead(picked) < min_margin
         labels[ys[unsure], xs[unsure]] = Cls.NONE
     return labels
+
+
+def _lead(scores: np.ndarray) -> np.ndarray:
+    """(N,): how far the best of (C, N) scores leads the runner-up (C >= 2; 0 where two
+    share the best). Row maxima, not np.partition along axis 0: 3x faster."""
+    best = scores.max(axis=0)
+    hit = scores == best
+    lead = best - np.where(hit, -np.inf, scores).max(axis=0)
+    lead[hit.sum(axis=0) > 1] = 0.0
+    return lead
 
 
 def _scores_at(scores: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
@@ -484,10 +664,11 @@ def configured_onnx(seg, *, min_margin: float = 0.0, camera=None) -> OnnxSegment
     model_path is empty), with the caller's `min_margin`: the mapping vehicles and the car
     each set their own (vehicle.paint_min_margin, localizer.paint_min_margin). Given the
     `camera` (CameraModel) and `seg.sky_margin_deg` >= 0, the rows above rays rising that far
-    above level are not segmented (OnnxSegmenter's sky_fraction)."""
+    above level are not segmented (OnnxSegmenter's sky_fraction). The model's learned border
+    classifier runs only when `seg.border_net` asks for it (else its brightness rule)."""
     from common.camera import sky_fraction
 
     sky = 0.0 if camera is None else sky_fraction(camera, seg.sky_margin_deg)
     return get_segmenter("onnx", model_path=seg.model_path,
                          intra_op_threads=seg.intra_op_threads, min_margin=min_margin,
-                         sky_fraction=sky)
+                         sky_fraction=sky, border_net=bool(seg.border_net))

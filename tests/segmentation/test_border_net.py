@@ -1,0 +1,205 @@
+"""The learned paint-border classifier (BorderNet): features, decisions, the runtime switch and
+its fitting (the fitting tests need the optional torch extra)."""
+
+import numpy as np
+import pytest
+
+from common.classes import NUM_CLASSES, Cls
+from common.config import SegmentationConfig
+from common.errors import ConfigError
+from common.segmentation import (
+    BORDER_FEATURES,
+    DEFAULT_MODEL,
+    BorderNet,
+    OnnxSegmenter,
+    border_features,
+    configured_onnx,
+    paint_border_pixels,
+    unsure_paint_border,
+)
+
+ROAD_GREY, PAINT_GREY = 80, 200
+PATCH = 25  # 5x5
+CENTRE = 12  # the pixel itself in a flattened 5x5 patch
+
+
+def _scene():
+    """A road with a 3 px vertical line (columns 20-22), and its true labels."""
+    gray = np.full((40, 48), ROAD_GREY, np.uint8)
+    gray[:, 20:23] = PAINT_GREY
+    truth = np.full(gray.shape, Cls.ROAD, np.uint8)
+    truth[:, 20:23] = Cls.LANE_LINE
+    return gray, truth
+
+
+def _unsure(labels):
+    """score_at of a network that leads by 0.5 logits everywhere: every border pixel unsure."""
+    def score_at(ys, xs):
+        scores = np.zeros((NUM_CLASSES, len(ys)), np.float32)
+        scores[labels[ys, xs], np.arange(len(ys))] = 0.5
+        return scores
+    return score_at
+
+
+def _brightness_net(max_margin=np.inf):
+    """A one-layer BorderNet: lane line where the pixel's own normalized grey passes 0.5."""
+    w = np.zeros((BORDER_FEATURES, NUM_CLASSES))
+    w[CENTRE, Cls.LANE_LINE] = 10.0
+    b = np.zeros(NUM_CLASSES)
+    b[Cls.LANE_LINE], b[Cls.ROAD] = -5.0, 0.0
+    b[[Cls.NONE, Cls.STOP_LINE, Cls.CROSSWALK, Cls.GROUND_SIGN]] = -100.0
+    return BorderNet({"layers": [{"w": w.tolist(), "b": b.tolist()}], "max_margin": max_margin})
+
+
+def test_features_normalise_the_patch_between_road_and_paint():
+    gray, truth = _scene()
+    border = paint_border_pixels(truth)
+    ys, xs = np.divmod(border, truth.shape[1])
+    assert set(xs) == {19, 20, 22, 23}  # a pixel either side of each edge
+    feats = border_features(gray, truth, _unsure(truth)(ys, xs), border)
+    assert feats.shape == (len(border), BORDER_FEATURES) and feats.dtype == np.float32
+    row = feats[np.flatnonzero((ys == 20) & (xs == 19))[0]]  # road, left of the line
+    grey = row[:PATCH].reshape(5, 5)  # columns 17..21: road, road, road, paint, paint
+    np.testing.assert_allclose(grey[:, :3], 0.0)
+    np.testing.assert_allclose(grey[:, 3:], 1.0)  # (200 - 80) / (200 - 80)
+    np.testing.assert_array_equal(row[PATCH:2 * PATCH].reshape(5, 5)[:, 3:], 1.0)
+    np.testing.assert_array_equal(row[PATCH:2 * PATCH].reshape(5, 5)[:, :3], 0.0)
+    scores = row[2 * PATCH:2 * PATCH + NUM_CLASSES]
+    assert scores[Cls.ROAD] == 0.0 and scores[Cls.LANE_LINE] == -0.125  # (0 - 0.5) / 4
+    contrast, road, n_road, n_paint = row[-4:]
+    assert contrast == pytest.approx(120 / 64) and road == pytest.approx(80 / 128)
+    # the 9x9 box: columns 15..23, road in 15..19 and 23
+    assert n_road == pytest.approx(6 * 9 / 81) and n_paint == pytest.approx(3 * 9 / 81)
+
+
+def test_patches_at_the_image_edge_repeat_its_pixels():
+    gray, truth = _scene()
+    truth[0:3, :] = Cls.LANE_LINE  # paint along the top edge
+    gray[0:3, :] = PAINT_GREY
+    border = paint_border_pixels(truth)
+    ys, xs = np.divmod(border, truth.shape[1])
+    feats = border_features(gray, truth, _unsure(truth)(ys, xs), border)
+    assert np.isfinite(feats).all()
+    top = feats[np.flatnonzero((ys == 3) & (xs == 5))[0], :PATCH].reshape(5, 5)
+    np.testing.assert_allclose(top[:2], 1.0)  # rows 1, 2: paint
+    np.testing.assert_allclose(top[2:], 0.0)  # rows 3..5: road
+
+
+def test_a_line_labelled_a_pixel_too_wide_or_too_thin_is_put_right():
+    gray, truth = _scene()
+    net = _brightness_net()
+    wide = truth.copy()
+    wide[:, 19] = Cls.LANE_LINE
+    np.testing.assert_array_equal(net(gray, wide, _unsure(wide)), truth)
+    thin = truth.copy()
+    thin[:, 22] = Cls.ROAD
+    np.testing.assert_array_equal(net(gray, thin, _unsure(thin)), truth)
+
+
+def test_pixels_the_network_is_sure_of_keep_its_label():
+    gray, truth = _scene()
+    wide = truth.copy()
+    wide[:, 19] = Cls.LANE_LINE
+    # the network leads by 0.5 logits: below a max_margin of 1 the classifier decides, not
+    # below one of 0.25
+    np.testing.assert_array_equal(_brightness_net(1.0)(gray, wide, _unsure(wide)), truth)
+    np.testing.assert_array_equal(_brightness_net(0.25)(gray, wide, _unsure(wide)), wide)
+    border, scores = unsure_paint_border(wide, _unsure(wide), 0.25)
+    assert len(border) == 0 and scores.shape == (NUM_CLASSES, 0)
+
+
+def test_frames_without_paint_come_back_unchanged():
+    labels = np.full((30, 30), Cls.ROAD, np.uint8)
+    gray = np.full(labels.shape, 90, np.uint8)
+    np.testing.assert_array_equal(_brightness_net()(gray, labels, _unsure(labels)), labels)
+
+
+def test_a_malformed_spec_is_refused():
+    with pytest.raises(ConfigError, match="malformed"):
+        BorderNet({"weights": []})
+    with pytest.raises(ConfigError, match="do not chain"):
+        BorderNet({"layers": [{"w": np.zeros((BORDER_FEATURES, 8)).tolist(), "b": [0.0] * 8}]})
+    with pytest.raises(ConfigError, match="do not chain"):
+        BorderNet({"layers": [{"w": np.zeros((10, NUM_CLASSES)).tolist(),
+                               "b": [0.0] * NUM_CLASSES}]})
+
+
+needs_model = pytest.mark.skipif(not DEFAULT_MODEL.is_file(), reason="no packaged model")
+
+
+def _road_with_lines():
+    import cv2
+
+    image = np.full((360, 640, 3), 60, np.uint8)
+    image[:150] = (150, 170, 200)
+    image[150:] = (85, 85, 88)
+    for x_bottom, x_top in ((120, 300), (520, 340), (320, 320)):
+        cv2.line(image, (x_bottom, 359), (x_top, 160), (225, 225, 220), 6)
+    return image
+
+
+@needs_model
+def test_the_packaged_classifier_runs_only_when_asked_and_changes_only_border_pixels():
+    image = _road_with_lines()
+    rule = OnnxSegmenter()
+    assert rule.border_net is None  # the default: the brightness rule
+    learned = OnnxSegmenter(border_net=True)
+    assert learned.border_net is not None
+    raw = OnnxSegmenter(refine={}).segment(image)
+    out = learned.segment(image)
+    assert (out >= Cls.LANE_LINE).sum() > 500
+    changed = out != raw
+    assert changed.any()
+    border = np.zeros(raw.size, bool)
+    border[paint_border_pixels(raw)] = True
+    assert not (changed.reshape(-1) & ~border).any()
+    assert configured_onnx(SegmentationConfig(border_net=True)).border_net is not None
+    assert configured_onnx(SegmentationConfig()).border_net is None
+
+
+@needs_model
+def test_asking_for_a_classifier_the_model_lacks_is_an_error(tmp_path):
+    import json
+
+    import onnx
+
+    proto = onnx.load(str(DEFAULT_MODEL))
+    entry = next(e for e in proto.metadata_props if e.key == "roadmap.segmentation")
+    meta = json.loads(entry.value)
+    meta.pop("border_net", None)
+    entry.value = json.dumps(meta)
+    path = tmp_path / "plain.onnx"
+    onnx.save(proto, str(path))
+    with pytest.raises(ConfigError, match="no border classifier"):
+        OnnxSegmenter(path, border_net=True)
+    with pytest.raises(ConfigError, match="no border classifier"):
+        OnnxSegmenter(head_map={"logits": {2: int(Cls.LANE_LINE)}}, border_net=True)
+
+
+def test_fitting_learns_a_rule_and_the_spec_decides_as_torch_does():
+    pytest.importorskip("torch", reason="fitting needs the .[train] extra (torch)")
+    from services.segtrain.border import fit_border_net
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(200_000, BORDER_FEATURES)).astype(np.float32)
+    y = np.where(x[:, CENTRE] > 0.3, Cls.LANE_LINE, Cls.ROAD).astype(np.int64)
+    spec = fit_border_net(x, y, seed=0)
+    net = BorderNet(spec)
+    assert (net.scores(x).argmax(1) == y).mean() > 0.97
+    assert spec["max_margin"] == 3.0
+    with pytest.raises(ValueError, match="too few"):
+        fit_border_net(x[:100], y[:100])
+
+
+def test_border_only_refuses_the_seed_the_model_was_trained_on(tmp_path, capsys):
+    pytest.importorskip("torch", reason="train-seg needs the .[train] extra (torch)")
+    pytest.importorskip("onnx", reason="train-seg needs the .[train] extra (onnx)")
+    if not DEFAULT_MODEL.is_file():
+        pytest.skip("no packaged model")
+    from services.cli import main
+
+    model = tmp_path / "m.onnx"
+    model.write_bytes(DEFAULT_MODEL.read_bytes())
+    assert main(["train-seg", "--border-only", str(model), "--seed", "0",
+                 "--out", str(tmp_path)]) == 1
+    assert "another --seed" in capsys.readouterr().err
