@@ -150,6 +150,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="set the paint-border settings of a trained ONNX model (metadata "
                         "`refine`) on the calibration frames of these rendering settings, and "
                         "stop (done by every training run)")
+    p.add_argument("--border-only", default=None, metavar="MODEL",
+                   help="fit the learned paint-border classifier of a trained ONNX model "
+                        "(metadata `border_net`) on --frames town frames of --seed (use a seed "
+                        "the model never trained on), keep it if it beats the model's "
+                        "brightness rule on the last 10 %%, and stop")
     p.add_argument("--reexport", default=None, metavar="MODEL",
                    help="write a trained RoadSegNet ONNX file again as this version exports it "
                         "(weights and metadata kept; since 2026-11-25: a dynamic input height, "

@@ -48,6 +48,8 @@ def train_command(args, cfg) -> int:
         logger.info("%s -> %s: %s", args.reexport, out / "roadseg.onnx",
                     reexport_onnx(args.reexport, out / "roadseg.onnx"))
         return 0
+    if args.border_only:
+        return _border_only(args, out)
     if args.stream:
         return _train_streamed(args, out, t_start)
     render_budget_s = (min(0.2 * minutes * 60.0, 10 * 60.0) if args.render_minutes is None
@@ -78,6 +80,40 @@ def train_command(args, cfg) -> int:
                               crop_hw=crop_size(args.crop, frames.shape[1:3]))
     result["render_s"] = round(render_s, 1)
     return _finish(args, out, result, t_start)
+
+
+def _border_only(args, out: Path) -> int:
+    """--border-only MODEL: fit its BorderNet (services/segtrain/border.py) on --frames town
+    frames of --seed, all of them rendered (no time budget), and write it into MODEL's metadata
+    when it beats the model's brightness rule; the log goes to --out/border_log.json."""
+    from services.segtrain.border import calibrate_border_net
+
+    trained_seed = _metadata(args.border_only).get("seed")
+    if trained_seed == args.seed:
+        raise ConfigError(f"--border-only: {args.border_only} was trained on the towns of seed "
+                          f"{args.seed}; fit its border classifier on another --seed")
+    budget_s = 60.0 * args.render_minutes if args.render_minutes else 24 * 3600.0
+    frames, labels = seg_data.training_set(seed=args.seed, input_size=INPUT_SIZE,
+                                           budget_s=budget_s, max_frames=args.frames,
+                                           workers=args.workers, cache=not args.no_cache,
+                                           turn_prob=args.turn_prob)
+    result = calibrate_border_net(args.border_only, frames, labels, seed=args.seed)
+    if result["border_net"] is not None:
+        set_metadata(args.border_only, border_net=result["border_net"])
+    log = {k: v for k, v in result.items() if k != "border_net"}
+    log.update(kept=result["border_net"] is not None, model=str(args.border_only),
+               seed=args.seed, frames=len(frames))
+    (out / "border_log.json").write_text(json.dumps(log, indent=2))
+    logger.info("border classifier of %s: %s", args.border_only, log)
+    return 0
+
+
+def _metadata(path) -> dict:
+    """The `roadmap.segmentation` metadata of an ONNX model ({} when it has none)."""
+    import onnx
+
+    entry = _meta_entry(onnx.load(str(path)))
+    return json.loads(entry.value) if entry else {}
 
 
 def crop_size(text: str, frame_hw) -> tuple[int, int]:
@@ -500,12 +536,17 @@ def set_metadata(path, **updates) -> None:
     import onnx
 
     proto = onnx.load(str(path))
-    entry = next((e for e in proto.metadata_props if e.key == META_KEY), None)
+    entry = _meta_entry(proto)
     if entry is None:
         entry = proto.metadata_props.add()
         entry.key, entry.value = META_KEY, "{}"
     entry.value = json.dumps({**json.loads(entry.value), **updates})
     onnx.save(proto, str(path))
+
+
+def _meta_entry(proto):
+    """The `roadmap.segmentation` metadata entry of an ONNX model proto, or None."""
+    return next((e for e in proto.metadata_props if e.key == META_KEY), None)
 
 
 def _heap_trimmer():
