@@ -153,14 +153,15 @@ def speed(seg, frames: list, *, repeats: int) -> dict:
 
 def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES,
         baseline_path: str | None = None, baseline_unrefined: bool = False,
-        sky_margin_deg: float | None = None) -> dict:
+        sky_margin_deg: float | None = None, border_net: bool = False) -> dict:
     import onnxruntime
 
     if sky_margin_deg is None:
         sky_margin_deg = SegmentationConfig().sky_margin_deg
     # the rows the product leaves out for render_heldout's camera
     sky = sky_fraction(camera_from_config(CameraConfig()), sky_margin_deg)
-    seg = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, sky_fraction=sky)
+    seg = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, sky_fraction=sky,
+                        border_net=border_net)
     # the model as the mapping vehicles run it: paint it is unsure of left unknown
     gated = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, sky_fraction=sky,
                           min_margin=VehicleConfig().paint_min_margin)
@@ -172,6 +173,7 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
     report = {
         "model": seg.name, "model_bytes": Path(model_path or DEFAULT_MODEL).stat().st_size,
         "refine": seg.refine,  # paint borders re-decided on the image ({}: off)
+        "border_net": seg.border_net is not None,  # by the learned classifier instead
         "sky_margin_deg": sky_margin_deg, "sky_rows": seg.sky_rows,  # rows not segmented
         "python": platform.python_version(), "onnxruntime": onnxruntime.__version__,
         "targets": TARGETS, "worlds": {},
@@ -267,10 +269,13 @@ def main(argv=None) -> int:
     parser.add_argument("--sky-margin-deg", type=float, default=None,
                         help="leave out the rows above rays rising this far above level, as the "
                              "product does (default: segmentation.sky_margin_deg; -1: none)")
+    parser.add_argument("--border-net", action="store_true",
+                        help="decide paint borders by the model's learned border classifier "
+                             "(segmentation.border_net) instead of its brightness rule")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     report = run(args.quick, args.model, args.frames, args.baseline, args.baseline_unrefined,
-                 args.sky_margin_deg)
+                 args.sky_margin_deg, args.border_net)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "segmentation.json").write_text(json.dumps(report, indent=2))
