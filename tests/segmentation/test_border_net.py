@@ -17,6 +17,7 @@ from common.segmentation import (
     paint_border_pixels,
     unsure_paint_border,
 )
+from tests.segmentation.test_refine import _road_with_lines
 
 ROAD_GREY, PAINT_GREY = 80, 200
 PATCH = 25  # 5x5
@@ -125,17 +126,6 @@ def test_a_malformed_spec_is_refused():
 
 
 needs_model = pytest.mark.skipif(not DEFAULT_MODEL.is_file(), reason="no packaged model")
-
-
-def _road_with_lines():
-    import cv2
-
-    image = np.full((360, 640, 3), 60, np.uint8)
-    image[:150] = (150, 170, 200)
-    image[150:] = (85, 85, 88)
-    for x_bottom, x_top in ((120, 300), (520, 340), (320, 320)):
-        cv2.line(image, (x_bottom, 359), (x_top, 160), (225, 225, 220), 6)
-    return image
 
 
 @needs_model
