@@ -306,7 +306,8 @@ class OnnxSegmenter(Segmenter):
         """The paint borders of network_labels' `labels` re-decided on the image: by the
         learned border classifier (`border_net`) where the labels are at the model's input
         size, else by their brightness (`refine`, refine_paint_borders) when the model's
-        settings ask for it."""
+        settings ask for it. Either runs after the `min_margin` gate, so a border pixel the
+        gate left unknown can be given back to the paint beside it."""
         if self.border_net and score_at is not None and labels.shape == small.shape[:2]:
             return self.border_net(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), labels, score_at)
         if self.refine:
