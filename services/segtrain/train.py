@@ -789,6 +789,9 @@ def model_card(result: dict) -> str:
 - **Paint borders** re-decided on the image's brightness by the runtime (metadata `refine`,
   common.segmentation.refine_paint_borders; calibrate_refine: the setting maximising the mean
   paint IoU on the same town frames as the offsets, {{}} = off): {result.get("refine")}.
+  An optional learned border classifier (metadata `border_net`, on with
+  `segmentation.border_net = true`) is fitted afterwards, on town frames of another seed:
+  `roadmap train-seg --border-only DIR/roadseg.onnx --out DIR --seed S --frames 2880`.
 - **Validation** (the other half of the held-out procedural-town frames, model input size):
   {result["val_iou_town"]} (torch, before the border refinement); as the runtime segments them:
   {result.get("val_iou_town_runtime")}.
