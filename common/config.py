@@ -100,8 +100,8 @@ class SegmentationConfig:
     sky_margin_deg: float = 10.0
     # paint borders decided by the model's learned border classifier (metadata `border_net`,
     # common.segmentation.BorderNet) instead of its brightness rule (`refine`): on the
-    # benchmark's frames +0.010 lane-line, +0.012 crosswalk, +0.015 stop-line IoU, for about
-    # 1.5 ms a frame more (p95: 3 ms, past the 15 ms budget), so off unless asked for
+    # benchmark's frames +0.0125 lane-line, +0.012 crosswalk, +0.017 stop-line IoU, for 1.3 ms
+    # a frame more (p95: 2.2 ms, past the 15 ms budget), so off unless asked for
     border_net: bool = False
 
 

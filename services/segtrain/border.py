@@ -17,14 +17,14 @@ import time
 import cv2
 import numpy as np
 
-from common.classes import MARKINGS, NAMES, NUM_CLASSES, Cls
+from common.classes import NUM_CLASSES, Cls
 from common.segmentation import (
     BORDER_FEATURES,
     OnnxSegmenter,
     border_features,
     unsure_paint_border,
 )
-from services.segtrain.evaluate import IouAccumulator
+from services.segtrain.evaluate import mean_paint_iou, segmenter_iou
 
 logger = logging.getLogger(__name__)
 
@@ -109,13 +109,8 @@ def _rounded(a: np.ndarray) -> list:
 def paint_iou(seg: OnnxSegmenter, frames, labels) -> dict:
     """Per-class IoU of `seg` as the runtime segments town frames, and the mean over the
     markings present ("paint")."""
-    acc = IouAccumulator()
-    for frame, truth in zip(frames, labels, strict=True):
-        acc.add(seg.segment_model_size(frame), truth)
-    ious = acc.result()
-    paint = {NAMES[c] for c in MARKINGS}
-    marks = [v for name, v in ious.items() if v is not None and name in paint]
-    return {**ious, "paint": float(np.mean(marks)) if marks else 0.0}
+    ious = segmenter_iou(seg, frames, labels)
+    return {**ious, "paint": mean_paint_iou(ious)}
 
 
 def calibrate_border_net(model_path, frames, labels, *, seed: int = 0) -> dict:

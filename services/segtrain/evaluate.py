@@ -3,7 +3,7 @@ per-class IoU accumulated over frames (sum of intersections / sum of unions)."""
 
 import numpy as np
 
-from common.classes import NAMES, Cls
+from common.classes import MARKINGS, NAMES, Cls
 
 CLASSES = (Cls.ROAD, Cls.LANE_LINE, Cls.STOP_LINE, Cls.CROSSWALK, Cls.GROUND_SIGN)
 # Words of the road text added to held-out worlds: none of them is painted in the training towns
@@ -191,6 +191,23 @@ def with_ground_signs(world, seed: int, spacing_m: float = 30.0, margin_m: float
     if not anchors:
         raise ValueError(f"{world.name}: no bare road for a ground sign")
     return dataclasses.replace(world, markings=list(world.markings) + signs), anchors
+
+
+def mean_paint_iou(ious: dict) -> float:
+    """Mean IoU of the marking classes present in `ious` (IouAccumulator.result()); 0 when
+    none is."""
+    paint = {NAMES[c] for c in MARKINGS}
+    marks = [v for name, v in ious.items() if v is not None and name in paint]
+    return float(np.mean(marks)) if marks else 0.0
+
+
+def segmenter_iou(seg, frames, labels) -> dict:
+    """Per-class IoU of an OnnxSegmenter as the runtime segments frames (N, H, W, 3) at its
+    model's input size, against their labels."""
+    acc = IouAccumulator()
+    for frame, truth in zip(frames, labels, strict=True):
+        acc.add(seg.segment_model_size(frame), truth)
+    return acc.result()
 
 
 class IouAccumulator:

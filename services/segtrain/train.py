@@ -21,7 +21,7 @@ from common.errors import ConfigError
 from common.segmentation import META_KEY, OnnxSegmenter, refine_paint_borders
 from services.segtrain import data as seg_data
 from services.segtrain.archs import ARCHS
-from services.segtrain.evaluate import IouAccumulator
+from services.segtrain.evaluate import IouAccumulator, mean_paint_iou, segmenter_iou
 
 logger = logging.getLogger(__name__)
 
@@ -508,9 +508,7 @@ def calibrate_refine(model_path, frames: np.ndarray, labels: np.ndarray) -> dict
         acc = IouAccumulator()
         for g, p, truth in zip(grays, raw, labels, strict=True):
             acc.add(refine_paint_borders(g, p, **settings) if settings else p, truth)
-        ious = [v for name, v in acc.result().items()
-                if v is not None and name in {NAMES[c] for c in MARKINGS}]
-        return float(np.mean(ious)) if ious else 0.0
+        return mean_paint_iou(acc.result())
 
     best, best_score = {}, score({})
     for window in REFINE_WINDOWS:
@@ -524,11 +522,7 @@ def calibrate_refine(model_path, frames: np.ndarray, labels: np.ndarray) -> dict
 def runtime_iou(model_path, frames: np.ndarray, labels: np.ndarray) -> dict:
     """Per-class IoU (None: absent from the truth) of the exported model as OnnxSegmenter
     segments (its metadata's settings) on town frames at the model's input size."""
-    seg = OnnxSegmenter(model_path)
-    acc = IouAccumulator()
-    for frame, truth in zip(frames, labels, strict=True):
-        acc.add(seg.segment_model_size(frame), truth)
-    return acc.result()
+    return segmenter_iou(OnnxSegmenter(model_path), frames, labels)
 
 
 def set_metadata(path, **updates) -> None:
