@@ -142,6 +142,7 @@ def test_upsampled_argmax_equals_the_resize_then_argmax(rng):
     import cv2
 
     from common.segmentation import (
+        UpsampledScores,
         _resize_channels,
         argmax_channels,
         upsampled_argmax,
@@ -157,6 +158,14 @@ def test_upsampled_argmax_equals_the_resize_then_argmax(rng):
         np.testing.assert_array_equal(upsampled_argmax(scores), argmax_channels(up))
         ys, xs = np.nonzero(np.ones((38, 66), bool))
         np.testing.assert_allclose(upsampled_at(scores, ys, xs), up.reshape(6, -1), atol=1e-5)
+        # the kept blends of the mixed blocks and the computed scores elsewhere, in any order
+        upsampled = UpsampledScores(scores)
+        order = rng.permutation(len(ys))
+        np.testing.assert_allclose(upsampled(ys[order], xs[order]), up.reshape(6, -1)[:, order],
+                                   atol=1e-5)
+        assert upsampled(ys[:0], xs[:0]).shape == (6, 0)
+    flat = UpsampledScores(np.zeros((6, 4, 5), np.float32))  # no mixed block: nothing kept
+    assert (flat.labels == 0).all() and flat([1, 7], [2, 9]).shape == (6, 2)
 
 
 @needs_model
