@@ -138,13 +138,19 @@ def load_onnx_weights(model: nn.Module, path) -> None:
     more classes than the file's keeps the file's rows and starts the extra ones as copies of
     row 0 (none), so the auxiliary classes begin as 'none' and split off from it; a sub-pixel
     head from a 1/2-resolution one starts each sub-pixel as a copy of its pixel (the file's
-    model with nearest-neighbour upsampling)."""
+    model with nearest-neighbour upsampling). Decoder blocks split for speed
+    (onnx_graph.split_concatenations) are merged back."""
     import onnx
     from onnx import numpy_helper
 
+    from services.segtrain.onnx_graph import merged_convolutions
+
     proto = onnx.load(str(path))
     tensors = {t.name: numpy_helper.to_array(t) for t in proto.graph.initializer}
-    nodes = [n for n in proto.graph.node if n.op_type == "Conv"]
+    for node in proto.graph.node:  # the exporter shares equal initializers via Identity
+        if node.op_type == "Identity" and node.input[0] in tensors:
+            tensors[node.output[0]] = tensors[node.input[0]]
+    nodes = merged_convolutions(proto, tensors)
     convs: list[nn.Conv2d] = []
     hooks = [m.register_forward_hook(lambda m, i, o: convs.append(m))
              for m in model.modules() if isinstance(m, nn.Conv2d)]
@@ -165,10 +171,9 @@ def load_onnx_weights(model: nn.Module, path) -> None:
                     norm_after[a] = b
     s2 = getattr(model, "subpixel", 1) ** 2
     with torch.no_grad():
-        for node, conv in zip(nodes, convs, strict=True):
-            w = torch.from_numpy(tensors[node.input[1]].copy())
-            b = (torch.from_numpy(tensors[node.input[2]].copy()) if len(node.input) > 2
-                 else torch.zeros(w.shape[0]))
+        for (name, weight, bias), conv in zip(nodes, convs, strict=True):
+            w = torch.from_numpy(weight.copy())
+            b = torch.from_numpy(bias.copy()) if bias is not None else torch.zeros(w.shape[0])
             if conv is convs[-1] and w.shape[0] * s2 <= conv.weight.shape[0]:  # the head
                 extra = conv.weight.shape[0] // s2 - w.shape[0]
                 if extra > 0:  # auxiliary classes start as none
@@ -177,7 +182,7 @@ def load_onnx_weights(model: nn.Module, path) -> None:
                 if s2 > 1:  # from a 1/2-resolution head: each sub-pixel starts as its pixel
                     w, b = w.repeat_interleave(s2, 0), b.repeat_interleave(s2, 0)
             if w.shape != conv.weight.shape:
-                raise ValueError(f"{path}: {node.name} has weights {tuple(w.shape)}, "
+                raise ValueError(f"{path}: {name} has weights {tuple(w.shape)}, "
                                  f"the model {tuple(conv.weight.shape)}")
             conv.weight.copy_(w)
             norm = norm_after.get(conv)
@@ -213,12 +218,80 @@ def onnx_widths(path) -> list[int]:
 def widen(small: nn.Module, wide: nn.Module) -> None:
     """Copy a trained RoadSegNet into one with more channels per stage (same depths and head),
     so that `wide` computes exactly what `small` does: every old channel keeps its weights, each
-    new channel starts from `wide`'s random initialisation, and the weights from new channels
+    new channel starts from `wide`'s own initialisation, and the weights from new channels
     into old ones (and into the head) start at zero, so the new channels are ignored until
     training finds a use for them. New batch norms are the identity (as `load_onnx_weights`
     leaves the folded ones). Why: onnxruntime's blocked convolutions pad channels to 16 on
-    AVX-512, so widths [16, 32, 48, 64] cost only 1.4 % more than [12, 20, 40, 64] (archs.py);
-    the wider model can be fine-tuned from the narrower one instead of from scratch."""
+    AVX-512, so widths [16, 32, 48, 64] cost no more than [12, 20, 40, 64] (archs.py); the
+    wider model can be fine-tuned from the narrower one instead of from scratch."""
+    modules, old = dict(wide.named_modules()), dict(small.named_modules())
+    with torch.no_grad():
+        for name, conv, src, out_map, in_map in _channel_maps(small, wide):
+            w = conv.weight
+            if conv.groups > 1:
+                w[out_map] = src.weight
+            else:
+                w[out_map] = 0.0
+                w[out_map[:, None], in_map[None, :]] = src.weight
+            if conv.bias is not None:
+                conv.bias[out_map] = src.bias
+            norm, src_norm = _norm_after(modules, name), _norm_after(old, name)
+            if norm is not None:
+                norm.weight.fill_(1.0)
+                norm.bias.zero_()
+                norm.running_mean.zero_()
+                norm.running_var.fill_(1.0 - norm.eps)
+                for key in ("weight", "bias", "running_mean", "running_var"):
+                    getattr(norm, key)[out_map] = getattr(src_norm, key)
+
+
+def narrow(wide: nn.Module, small: nn.Module) -> None:
+    """The inverse of `widen`: copy the channels of `wide` that `small` has into `small`.
+    `small` computes what `wide` does when the dropped channels are never read (an `aligned`
+    export, whose padding channels are zeros); the caller checks that."""
+    modules, big = dict(small.named_modules()), dict(wide.named_modules())
+    with torch.no_grad():
+        for name, src, conv, out_map, in_map in _channel_maps(small, wide):
+            conv.weight.copy_(src.weight[out_map] if conv.groups > 1
+                              else src.weight[out_map[:, None], in_map[None, :]])
+            if conv.bias is not None:
+                conv.bias.copy_(src.bias[out_map])
+            norm, src_norm = _norm_after(modules, name), _norm_after(big, name)
+            if norm is not None:
+                for key in ("weight", "bias", "running_mean", "running_var"):
+                    getattr(norm, key).copy_(getattr(src_norm, key)[out_map])
+
+
+def aligned(model: nn.Module, block: int = 16) -> nn.Module:
+    """`model` (eval mode) with every stage's channels rounded up to a multiple of `block`,
+    the new ones zeros (`widen` from an all-zero model): the same function, which onnxruntime
+    runs faster. Its blocked (NCHWc) convolutions pad channels to 16 on AVX-512 anyway, but
+    a 12-, 20- or 40-channel tensor must leave that layout to be concatenated with a skip or
+    read by a pointwise convolution: at [12, 20, 40, 64], 7 reorders and 3 concatenations
+    between the two layouts took 1.1 ms of the 9.5 ms network (one thread, 640x312,
+    2026-11-25); [16, 32, 48, 64] keeps the blocked layout but for the 1/16 -> 1/8 resize."""
+    widths = [-(-w // block) * block for w in model.arch["widths"]]
+    if widths == model.arch["widths"]:
+        return model
+    s2 = model.subpixel ** 2
+    wide = RoadSegNet(widths=widths, num_classes=model.head.out_channels // s2,
+                      depths=model.arch["depths"], rows=model.arch["rows"],
+                      subpixel=model.subpixel)
+    with torch.no_grad():
+        for p in wide.parameters():
+            p.zero_()
+    widen(model, wide)
+    wide.eval()
+    for key in ("export_classes", "crop_rows", "half_res_logits"):
+        setattr(wide, key, getattr(model, key))
+    return wide
+
+
+def _channel_maps(small: nn.Module, wide: nn.Module):
+    """(name, wide's conv, small's conv, out_map, in_map) for each convolution of two
+    RoadSegNets of the same depths, `wide` at least as wide in every stage: the indices in
+    wide's output and input channels of small's (a decoder block's depthwise convolution
+    outputs, and its pointwise one reads, the concatenation [upsampled deep, skip])."""
     (w0, w1, w2, w3), (_, n1, n2, n3) = small.arch["widths"], wide.arch["widths"]
     if small.arch["depths"] != wide.arch["depths"] or any(
             n < w for n, w in zip(wide.arch["widths"], small.arch["widths"], strict=True)):
@@ -227,40 +300,28 @@ def widen(small: nn.Module, wide: nn.Module) -> None:
     def concat(deep_old, deep_new, skip_old):  # cat([up(deep), skip]) channel positions
         return torch.cat([torch.arange(deep_old), deep_new + torch.arange(skip_old)])
 
-    # a decoder block's depthwise convolution outputs, and its pointwise one reads, the
-    # concatenation's layout; every other channel keeps its index
+    # every other channel keeps its index
     cat_in = {"dec2": concat(w3, n3, w2), "dec1": concat(w2, n2, w1), "dec0": concat(w1, n1, w0)}
-    modules = dict(wide.named_modules())
     old = dict(small.named_modules())
-    with torch.no_grad():
-        for name, conv in modules.items():
-            if not isinstance(conv, nn.Conv2d):
-                continue
-            src = old[name]
-            block = name.split(".")[0]
-            depthwise = conv.groups > 1
-            out_map = (cat_in[block] if block in cat_in and depthwise
-                       else torch.arange(src.out_channels))
-            in_map = (cat_in[block] if block in cat_in and not depthwise
-                      else torch.arange(src.in_channels // src.groups))
-            w = conv.weight
-            if depthwise:
-                w[out_map] = src.weight
-            else:
-                w[out_map] = 0.0
-                w[out_map[:, None], in_map[None, :]] = src.weight
-            if conv.bias is not None:
-                conv.bias[out_map] = src.bias
-            parent = name.rsplit(".", 1)[0]
-            norm = modules.get(parent + ".1") if name.endswith(".0") else None
-            if isinstance(norm, nn.BatchNorm2d):
-                norm.weight.fill_(1.0)
-                norm.bias.zero_()
-                norm.running_mean.zero_()
-                norm.running_var.fill_(1.0 - norm.eps)
-                src_norm = old[parent + ".1"]
-                for key in ("weight", "bias", "running_mean", "running_var"):
-                    getattr(norm, key)[out_map] = getattr(src_norm, key)
+    for name, conv in wide.named_modules():
+        if not isinstance(conv, nn.Conv2d):
+            continue
+        src = old[name]
+        block = name.split(".")[0]
+        depthwise = conv.groups > 1
+        out_map = (cat_in[block] if block in cat_in and depthwise
+                   else torch.arange(src.out_channels))
+        in_map = (cat_in[block] if block in cat_in and not depthwise
+                  else torch.arange(src.in_channels // src.groups))
+        yield name, conv, src, out_map, in_map
+
+
+def _norm_after(modules: dict, conv_name: str):
+    """The batch norm after convolution `conv_name` in a ConvBN (its sibling '.1'), or None."""
+    if not conv_name.endswith(".0"):
+        return None
+    norm = modules.get(conv_name.rsplit(".", 1)[0] + ".1")
+    return norm if isinstance(norm, nn.BatchNorm2d) else None
 
 
 def freeze_batch_norm(model: nn.Module) -> None:

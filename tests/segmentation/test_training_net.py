@@ -1,6 +1,8 @@
 """RoadSegNet's row embedding, its half-resolution export and fine-tuning from a saved run
 (needs the optional torch extra: `pip install .[train]`)."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -106,24 +108,15 @@ def test_subpixel_export_gives_full_resolution_labels_and_starts_as_its_init(tmp
     assert (quarter == labels[::4, ::4]).mean() > 0.99
 
 
-def test_a_widened_model_starts_as_the_narrower_export_it_is_fine_tuned_from(tmp_path):
-    """`--arch w16 --init s.onnx`: the new channels (the ones onnxruntime's blocked convolutions
+def test_a_widened_model_starts_as_the_narrower_model_it_is_fine_tuned_from():
+    """`--arch w16 --init s.pt`: the new channels (the ones onnxruntime's blocked convolutions
     pad to anyway) start random but ignored, so the wider model computes the narrower one."""
-    from services.segtrain.net import onnx_widths, widen
+    from services.segtrain.net import widen
 
-    torch.manual_seed(4)
-    small = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]).eval()
-    for m in small.modules():
-        if isinstance(m, torch.nn.BatchNorm2d):
-            torch.nn.init.normal_(m.bias, 0.0, 0.1)
-    small.export_classes = NUM_CLASSES
-    path = tmp_path / "s.onnx"
-    train.export_onnx(small, path, seed=4)
-    assert onnx_widths(path) == ARCHS["s"]["widths"]
+    small = _random_model(4)
     wide = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["w16"]).eval()
-    assert train._load_init(wide, str(path)) is True  # folded batch norms: kept frozen
+    widen(small, wide)
     wide.export_classes = NUM_CLASSES
-    small.half_res_logits = wide.half_res_logits = False
     x = torch.rand(2, 3, 96, 160)
     with torch.no_grad():
         assert torch.allclose(wide(x), small(x), atol=1e-4)
@@ -131,6 +124,50 @@ def test_a_widened_model_starts_as_the_narrower_export_it_is_fine_tuned_from(tmp
         assert not wide.head.weight[:, 12:].any()  # and not yet read
     with pytest.raises(ValueError, match="cannot widen"):
         widen(wide, RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]))
+
+
+def test_an_export_pads_its_channels_to_16_and_loads_into_either_width(tmp_path, rng):
+    """export_onnx writes `s` as [16, 32, 48, 64] with zero padding channels (net.aligned:
+    onnxruntime keeps its blocked layout), computing what `s` computes; `--init` of that file
+    narrows it back into `s` or loads it into `w16`; a file that uses its extra channels does
+    not narrow."""
+    import onnx
+    import onnxruntime as ort
+
+    from services.segtrain.net import onnx_widths
+
+    small = _random_model(4)
+    path = tmp_path / "s.onnx"
+    train.export_onnx(small, path, seed=4)
+    assert onnx_widths(path) == ARCHS["w16"]["widths"]
+    # the decoder blocks read their two inputs without a concatenation (onnx_graph)
+    graph = onnx.load(str(path)).graph
+    concatenated = {n.output[0] for n in graph.node if n.op_type == "Concat"}
+    assert not [n for n in graph.node if n.op_type == "Conv" and n.input[0] in concatenated]
+    assert sum("/split" in n.name for n in graph.node if n.op_type == "Conv") == 12
+    session = ort.InferenceSession(str(path))
+    meta = json.loads(session.get_modelmeta().custom_metadata_map["roadmap.segmentation"])
+    assert meta["arch"]["widths"] == ARCHS["w16"]["widths"]
+    x = torch.from_numpy(rng.random((1, 3, 96, 640), np.float32))  # the export: 640 wide
+    got = session.run(None, {"image": x.numpy()})[0]
+    small.half_res_logits = True  # (as the export has it: logits at 1/2)
+    with torch.no_grad():
+        assert np.abs(small(x).numpy() - got).max() < 1e-4
+    small.half_res_logits = False
+    for arch in ("s", "w16"):
+        model = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS[arch]).eval()
+        assert train._load_init(model, str(path)) is True  # folded batch norms: kept frozen
+        model.eval()
+        model.export_classes = NUM_CLASSES
+        with torch.no_grad():
+            assert torch.allclose(model(x), small(x), atol=1e-4)
+    used = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["w16"]).eval()
+    torch.nn.init.normal_(used.head.weight)  # reads every channel of the 1/2 stage
+    used_path = tmp_path / "used.onnx"
+    used.export_classes = NUM_CLASSES
+    train.export_onnx(used, used_path, seed=0)
+    with pytest.raises(train.ConfigError, match="--arch"):
+        train._load_init(RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]), str(used_path))
 
 
 def test_an_export_has_a_dynamic_height_and_a_re_export_keeps_the_model(tmp_path, rng):
@@ -164,14 +201,20 @@ def test_an_export_has_a_dynamic_height_and_a_re_export_keeps_the_model(tmp_path
 
 
 def _export_random(path, *, seed: int):
-    """A randomly initialised RoadSegNet `s` exported to `path` (-> the torch model), with
-    distinct folded biases (the export shares equal initializers, which loading cannot tell
-    apart)."""
+    """A randomly initialised RoadSegNet `s` exported to `path` (-> the torch model)."""
+    model = _random_model(seed)
+    train.export_onnx(model, path, seed=seed)
+    return model
+
+
+def _random_model(seed: int):
+    """A randomly initialised RoadSegNet `s` (eval mode, auxiliary classes folded for export),
+    with distinct batch-norm shifts (the export shares equal initializers, which loading
+    cannot tell apart)."""
     torch.manual_seed(seed)
     model = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]).eval()
     for m in model.modules():
         if isinstance(m, torch.nn.BatchNorm2d):
             torch.nn.init.normal_(m.bias, 0.0, 0.1)
     model.export_classes = NUM_CLASSES
-    train.export_onnx(model, path, seed=seed)
     return model
