@@ -2,7 +2,8 @@
 (Karlsruhe Lanelet2 and Argoverse 2 worlds, never trained on) and its speed on one core.
 
     python bench/bench_segmentation.py --out DIR [--quick] [--frames N] [--model M.onnx]
-        [--baseline B.onnx]  -> DIR/segmentation.json
+        [--no-border-net] [--baseline B.onnx [--baseline-borders rule|none]]
+        -> DIR/segmentation.json
 
 Frames: the simulator's renderer at seeded random poses on the world's routes (30 % facing a stop
 line, crosswalk or sign), default camera with 0.3 deg vibration, a new look every 10 frames;
@@ -152,8 +153,11 @@ def speed(seg, frames: list, *, repeats: int) -> dict:
 
 
 def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES,
-        baseline_path: str | None = None, baseline_unrefined: bool = False,
-        sky_margin_deg: float | None = None, border_net: bool = False) -> dict:
+        baseline_path: str | None = None, baseline_borders: str = "model",
+        sky_margin_deg: float | None = None, border_net: bool | None = None) -> dict:
+    """border_net: None, the model's learned border classifier if it has one (as the product
+    runs it); False, its brightness rule. baseline_borders: how the baseline decides its paint
+    borders: "model" (as the product), "rule" (its brightness rule) or "none"."""
     import onnxruntime
 
     if sky_margin_deg is None:
@@ -165,9 +169,10 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
     # the model as the mapping vehicles run it: paint it is unsure of left unknown
     gated = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, sky_fraction=sky,
                           min_margin=VehicleConfig().paint_min_margin)
+    borders = {"model": {}, "rule": {"border_net": False},
+               "none": {"border_net": False, "refine": {}}}[baseline_borders]
     baseline = (get_segmenter("onnx", model_path=baseline_path, intra_op_threads=1,
-                              sky_fraction=sky,
-                              **({"refine": {}} if baseline_unrefined else {}))
+                              sky_fraction=sky, **borders)
                 if baseline_path else None)
     rng, paired_rng = np.random.default_rng(0), np.random.default_rng(1)
     report = {
@@ -210,6 +215,7 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
         base_iou = _mean_over_worlds(
             {w: {"iou": e["baseline"]["iou"]} for w, e in report["worlds"].items()}, "iou")
         report["baseline"] = {"model": str(baseline_path), "refine": baseline.refine,
+                              "border_net": baseline.border_net is not None,
                               "iou": base_iou,
                               "diff": _diff(report["iou"], base_iou),
                               "diff_ci90": bootstrap_interval(_means_of_draws(paired))}
@@ -263,18 +269,21 @@ def main(argv=None) -> int:
     parser.add_argument("--baseline", default=None,
                         help="a second ONNX file scored on the same frames: the JSON gains the "
                              "model's IoU minus the baseline's with paired 90 %% intervals")
-    parser.add_argument("--baseline-unrefined", action="store_true",
-                        help="score the baseline without its paint-border refinement (with "
-                             "--baseline the same file: what the refinement buys)")
+    parser.add_argument("--baseline-borders", choices=("model", "rule", "none"), default="model",
+                        help="how the baseline decides its paint borders: as the product does "
+                             "(model: its learned classifier if it has one), by its brightness "
+                             "rule, or not at all (with --baseline the same file: what the "
+                             "classifier or the rule buys)")
     parser.add_argument("--sky-margin-deg", type=float, default=None,
                         help="leave out the rows above rays rising this far above level, as the "
                              "product does (default: segmentation.sky_margin_deg; -1: none)")
-    parser.add_argument("--border-net", action="store_true",
+    parser.add_argument("--border-net", action=argparse.BooleanOptionalAction, default=None,
                         help="decide paint borders by the model's learned border classifier "
-                             "(segmentation.border_net) instead of its brightness rule")
+                             "(default: if it has one, as segmentation.border_net does); "
+                             "--no-border-net: by its brightness rule")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    report = run(args.quick, args.model, args.frames, args.baseline, args.baseline_unrefined,
+    report = run(args.quick, args.model, args.frames, args.baseline, args.baseline_borders,
                  args.sky_margin_deg, args.border_net)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

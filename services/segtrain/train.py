@@ -502,7 +502,7 @@ def calibrate_refine(model_path, frames: np.ndarray, labels: np.ndarray) -> dict
     threshold `level`) that maximise the mean paint IoU of the exported model as the runtime
     runs it, on up to CALIBRATE_FRAMES town frames (N, H, W, 3) at the model's input size;
     {} (no refinement) when no setting beats the labels as they are."""
-    seg = OnnxSegmenter(model_path, refine={})
+    seg = OnnxSegmenter(model_path, refine={}, border_net=False)
     frames, labels = frames[:CALIBRATE_FRAMES], labels[:CALIBRATE_FRAMES]
     raw = [seg.segment_model_size(f) for f in frames]
     grays = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]

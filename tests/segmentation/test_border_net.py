@@ -129,13 +129,13 @@ needs_model = pytest.mark.skipif(not DEFAULT_MODEL.is_file(), reason="no package
 
 
 @needs_model
-def test_the_packaged_classifier_runs_only_when_asked_and_changes_only_border_pixels():
+def test_the_packaged_classifier_runs_by_default_and_changes_only_border_pixels():
     image = _road_with_lines()
-    rule = OnnxSegmenter()
-    assert rule.border_net is None  # the default: the brightness rule
-    learned = OnnxSegmenter(border_net=True)
-    assert learned.border_net is not None
-    raw = OnnxSegmenter(refine={}).segment(image)
+    learned = OnnxSegmenter()
+    assert learned.border_net is not None  # the default: the model's own classifier
+    assert OnnxSegmenter(border_net=False).border_net is None  # its brightness rule
+    assert OnnxSegmenter(border_net=True).border_net is not None
+    raw = OnnxSegmenter(refine={}, border_net=False).segment(image)
     out = learned.segment(image)
     assert (out >= Cls.LANE_LINE).sum() > 500
     changed = out != raw
@@ -143,8 +143,8 @@ def test_the_packaged_classifier_runs_only_when_asked_and_changes_only_border_pi
     border = np.zeros(raw.size, bool)
     border[paint_border_pixels(raw)] = True
     assert not (changed.reshape(-1) & ~border).any()
-    assert configured_onnx(SegmentationConfig(border_net=True)).border_net is not None
-    assert configured_onnx(SegmentationConfig()).border_net is None
+    assert configured_onnx(SegmentationConfig()).border_net is not None
+    assert configured_onnx(SegmentationConfig(border_net=False)).border_net is None
 
 
 @needs_model
@@ -160,8 +160,11 @@ def test_asking_for_a_classifier_the_model_lacks_is_an_error(tmp_path):
     entry.value = json.dumps(meta)
     path = tmp_path / "plain.onnx"
     onnx.save(proto, str(path))
+    assert OnnxSegmenter(path).border_net is None  # by default: the rule, quietly
     with pytest.raises(ConfigError, match="no border classifier"):
         OnnxSegmenter(path, border_net=True)
+    # a head_map remaps the classes the classifier was fitted for: off unless insisted on
+    assert OnnxSegmenter(head_map={"logits": {2: int(Cls.LANE_LINE)}}).border_net is None
     with pytest.raises(ConfigError, match="no border classifier"):
         OnnxSegmenter(head_map={"logits": {2: int(Cls.LANE_LINE)}}, border_net=True)
 

@@ -38,7 +38,8 @@ def test_packaged_model_describes_its_input_in_metadata():
 def test_head_map_remaps_and_drops_classes(rng):
     image = rng.integers(0, 255, (176, 320, 3), dtype=np.uint8)
     image[100:, :] = 90  # some road-like area
-    plain = OnnxSegmenter(refine={}).segment(image)  # a head_map turns the model's refine off
+    # a head_map turns the model's refine and border classifier off
+    plain = OnnxSegmenter(refine={}, border_net=False).segment(image)
     # model class 2 (lane line) -> ground sign, every other class -> 0
     remapped = OnnxSegmenter(head_map={"logits": {2: int(Cls.GROUND_SIGN)}}).segment(image)
     np.testing.assert_array_equal(remapped == Cls.GROUND_SIGN, plain == Cls.LANE_LINE)
@@ -124,8 +125,8 @@ def test_min_margin_drops_exactly_the_marking_pixels_the_model_is_unsure_of():
 
     image = _road_with_lines()
     image[300:, 380:470] = (150, 150, 140)  # a light patch beside a line: something to doubt
-    plain = OnnxSegmenter(refine={}).segment(image)
-    gated_seg = OnnxSegmenter(refine={}, min_margin=2.0)
+    plain = OnnxSegmenter(refine={}, border_net=False).segment(image)
+    gated_seg = OnnxSegmenter(refine={}, border_net=False, min_margin=2.0)
     gated = gated_seg.segment(image)
     # the margin from the raw logits, upsampled as the runtime does
     (logits,) = gated_seg._session.run(None, {"image": gated_seg.preprocess(image)})
@@ -173,8 +174,9 @@ def test_sky_rows_are_labelled_none_and_the_network_sees_only_the_rows_below():
     from tests.segmentation.test_refine import _road_with_lines
 
     image = _road_with_lines()
-    full = OnnxSegmenter(refine={})
-    sky = OnnxSegmenter(refine={}, sky_fraction=0.2)  # 72 rows, in steps of 16: 64
+    full = OnnxSegmenter(refine={}, border_net=False)
+    # 72 rows, in steps of 16: 64
+    sky = OnnxSegmenter(refine={}, border_net=False, sky_fraction=0.2)
     assert full.sky_rows == 0 and sky.sky_rows == 64
     assert sky.preprocess(image).shape == (1, 3, 360 - 64, 640)
     a, b = full.segment(image), sky.segment(image)
@@ -184,7 +186,7 @@ def test_sky_rows_are_labelled_none_and_the_network_sees_only_the_rows_below():
     # below the sky the network's context changes only at the top of its input
     assert (a[64:] == b[64:]).mean() > 0.98 and (b[64:][paint] == a[64:][paint]).mean() > 0.95
     # bilinear labels at another size keep the sky in proportion
-    big = OnnxSegmenter(refine={}, sky_fraction=0.2, upsample="bilinear")
+    big = OnnxSegmenter(refine={}, border_net=False, sky_fraction=0.2, upsample="bilinear")
     labels = big.segment(np.repeat(np.repeat(image, 2, 0), 2, 1))
     assert labels.shape == (720, 1280) and (labels[:128] == Cls.NONE).all()
     with pytest.raises(ConfigError, match="sky_fraction"):

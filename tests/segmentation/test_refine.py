@@ -73,7 +73,7 @@ def test_packaged_model_carries_refine_settings_and_the_runtime_applies_them():
     seg = OnnxSegmenter()
     assert set(seg.refine) <= {"window", "level", "min_contrast"} and seg.refine
     image = _road_with_lines()
-    raw = OnnxSegmenter(refine={}).segment(image)
+    raw = OnnxSegmenter(refine={}, border_net=False).segment(image)
     refined = seg.segment(image)
     assert (raw >= Cls.LANE_LINE).sum() > 500  # the model sees the lines
     changed = raw != refined
@@ -103,7 +103,8 @@ def test_calibration_keeps_labels_that_need_no_refinement(tmp_path):
     from services.segtrain.train import calibrate_refine, set_metadata
 
     frames = np.stack([_road_with_lines(), cv2.flip(_road_with_lines(), 1)])
-    raw = np.stack([OnnxSegmenter(refine={}).segment_model_size(f) for f in frames])
+    plain = OnnxSegmenter(refine={}, border_net=False)
+    raw = np.stack([plain.segment_model_size(f) for f in frames])
     assert calibrate_refine(DEFAULT_MODEL, frames, raw) == {}
     target = {"window": 7, "level": 0.5}
     truth = np.stack([refine_paint_borders(cv2.cvtColor(f, cv2.COLOR_RGB2GRAY), r, **target)
