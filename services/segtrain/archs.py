@@ -12,7 +12,9 @@ ARCHS = {
 ARCHS["m-norows"] = {**ARCHS["m"], "rows": False}
 # "s" with the channels that the blocked convolutions compute anyway (12 -> 16, 20 -> 32,
 # 40 -> 48): 11.66 ms against 11.50 for s (segment_model_size, 150 frames alternated,
-# 2026-11-25). Fine-tuned from an "s" export (`--init`), it starts as that model (net.widen).
+# 2026-11-25 afternoon), but the network alone 8.51 against 9.59 ms that night (thread CPU
+# time, 400 runs alternated): every export is now padded to these widths (net.aligned).
+# Fine-tuned from a narrower export (`--init`), it starts as that model (net.widen).
 ARCHS["w16"] = {**ARCHS["s"], "widths": [16, 32, 48, 64]}
 # "s" with a sub-pixel head: full-resolution logits from the 1/2 stage, at the same time
 ARCHS["s-sub"] = {**ARCHS["s"], "subpixel": 2}

@@ -780,7 +780,9 @@ def model_card(result: dict) -> str:
 - **Network**: RoadSegNet (services/segtrain/net.py): 4x4 stride-2 stem on the full-resolution
   image, depthwise-separable encoder-decoder with stages at 1/4, 1/8, 1/16 (dilated context),
   U-Net skips back to 1/2, logits at 1/2 (upsampled by the runtime);
-  {result["params"]} parameters, {result["model_bytes"] / 1024:.0f} KiB, ONNX opset 17.
+  {result["params"]} trained parameters, {result["model_bytes"] / 1024:.0f} KiB, ONNX opset 17;
+  the graph pads the channels to multiples of 16 and splits the decoder's concatenations (the
+  same function, faster in onnxruntime: net.aligned, onnx_graph.split_concatenations).
 - **Training data**: only seeded procedural towns (services/sim/town.py), never the Karlsruhe or
   Argoverse 2 benchmark worlds: {result["frames"]} frames in chunks of one town each (seeded by
   (seed, chunk), services/segtrain/data.py), 70 % rendered by the simulator's renderer
@@ -816,9 +818,9 @@ def model_card(result: dict) -> str:
 - **Paint borders** re-decided on the image's brightness by the runtime (metadata `refine`,
   common.segmentation.refine_paint_borders; calibrate_refine: the setting maximising the mean
   paint IoU on the same town frames as the offsets, {{}} = off): {result.get("refine")}.
-  An optional learned border classifier (metadata `border_net`, on with
-  `segmentation.border_net = true`) is fitted afterwards, on town frames of another seed:
-  `roadmap train-seg --border-only DIR/roadseg.onnx --out DIR --seed S --frames 2880`.
+  A learned border classifier (metadata `border_net`, which the runtime then uses instead:
+  `segmentation.border_net`, on by default) is fitted afterwards, on town frames of another
+  seed: `roadmap train-seg --border-only DIR/roadseg.onnx --out DIR --seed S --frames 2880`.
 - **Validation** (the other half of the held-out procedural-town frames, model input size):
   {result["val_iou_town"]} (torch, before the border refinement); as the runtime segments them:
   {result.get("val_iou_town_runtime")}.
