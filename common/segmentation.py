@@ -623,8 +623,11 @@ class UpsampledScores:
     pixels of each 'mixed' 2x2 block (about 1 in 10 on road frames) are blended and decided;
     the rest copy their block's class. The blends are kept: a paint border runs through mixed
     blocks (88 % of its pixels lie in one), so the scores BorderNet reads there are a lookup.
-    Same labels as the resize then argmax (but for exact ties of blended scores), 2.5x faster
-    at 640x360."""
+    Same labels as the resize then argmax (but for exact ties of blended scores); each mixed
+    block's four corners are gathered once for its four pixels. Logits of 200 benchmark road
+    frames (640x312), thread CPU time p50 / p95: 0.88 / 1.15 ms, against 1.32 / 1.88 blending
+    each pixel alone (before 2026-11-25 night) and 1.26 / 1.61 resizing every plane then the
+    argmax."""
 
     def __init__(self, scores: np.ndarray):
         c, h, w = scores.shape
