@@ -155,6 +155,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "(metadata `border_net`) on --frames town frames of --seed (use a seed "
                         "the model never trained on), keep it if it beats the model's "
                         "brightness rule on the last 10 %%, and stop")
+    p.add_argument("--border-frames", type=int, default=0, metavar="N",
+                   help="after training, fit the learned paint-border classifier (as "
+                        "--border-only does) on N town frames of --border-seed, all rendered "
+                        "(2880 on 2 cores: about 9.5 more minutes); default 0: none")
+    p.add_argument("--border-seed", type=int, default=None,
+                   help="the towns of the border classifier's frames (default: --seed + 31)")
     p.add_argument("--reexport", default=None, metavar="MODEL",
                    help="write a trained RoadSegNet ONNX file again as this version exports it "
                         "(weights and metadata kept; since 2026-11-25: a dynamic input height, "

@@ -33,6 +33,7 @@ LR_FINETUNE = 2e-3  # peak learning rate when starting from a trained model (--i
 THREADS = 2
 DEFAULT_CROP = f"{CROP_HW[1]}x{CROP_HW[0]}"
 TRIM_EVERY = 50  # steps between heap trims (_heap_trimmer)
+BORDER_SEED_OFFSET = 31  # --border-seed's default: --seed + 31, towns the network never saw
 
 
 def train_command(args, cfg) -> int:
@@ -44,6 +45,11 @@ def train_command(args, cfg) -> int:
         args.turn_prob = seg_data.TURN_PROB
     check_hard_pixels(args.hard_pixels)  # before minutes of rendering
     check_mirror(args.mirror_consistency, args.batch)
+    if getattr(args, "border_seed", None) is None:
+        args.border_seed = args.seed + BORDER_SEED_OFFSET
+    if args.border_frames and args.border_seed == args.seed:
+        raise ConfigError(f"--border-seed {args.border_seed}: the border classifier must be "
+                          "fitted on towns the network did not train on (another seed)")
     if args.reexport:
         logger.info("%s -> %s: %s", args.reexport, out / "roadseg.onnx",
                     reexport_onnx(args.reexport, out / "roadseg.onnx"))
@@ -78,6 +84,7 @@ def train_command(args, cfg) -> int:
                               iou_loss=args.iou_loss, arch=args.arch,
                               hard_pixels=args.hard_pixels, mirror=args.mirror_consistency,
                               crop_hw=crop_size(args.crop, frames.shape[1:3]))
+    del frames, labels  # before the border step renders its own
     result["render_s"] = round(render_s, 1)
     return _finish(args, out, result, t_start)
 
@@ -86,26 +93,36 @@ def _border_only(args, out: Path) -> int:
     """--border-only MODEL: fit its BorderNet (services/segtrain/border.py) on --frames town
     frames of --seed, all of them rendered (no time budget), and write it into MODEL's metadata
     when it beats the model's brightness rule; the log goes to --out/border_log.json."""
-    from services.segtrain.border import calibrate_border_net
-
     trained_seed = _metadata(args.border_only).get("seed")
     if trained_seed == args.seed:
         raise ConfigError(f"--border-only: {args.border_only} was trained on the towns of seed "
                           f"{args.seed}; fit its border classifier on another --seed")
     budget_s = 60.0 * args.render_minutes if args.render_minutes else 24 * 3600.0
-    frames, labels = seg_data.training_set(seed=args.seed, input_size=INPUT_SIZE,
-                                           budget_s=budget_s, max_frames=args.frames,
-                                           workers=args.workers, cache=not args.no_cache,
-                                           turn_prob=args.turn_prob)
-    result = calibrate_border_net(args.border_only, frames, labels, seed=args.seed)
-    if result["border_net"] is not None:
-        set_metadata(args.border_only, border_net=result["border_net"])
-    log = {k: v for k, v in result.items() if k != "border_net"}
-    log.update(kept=result["border_net"] is not None, model=str(args.border_only),
-               seed=args.seed, frames=len(frames))
+    log = fit_border_step(args.border_only, seed=args.seed, frames=args.frames, args=args,
+                          budget_s=budget_s)
     (out / "border_log.json").write_text(json.dumps(log, indent=2))
-    logger.info("border classifier of %s: %s", args.border_only, log)
     return 0
+
+
+def fit_border_step(model_path, *, seed: int, frames: int, args, budget_s: float) -> dict:
+    """Render `frames` town frames of `seed` (cached like the training frames), fit the
+    model's BorderNet on them (services/segtrain/border.py) and write it into the model's
+    metadata when it beats the model's brightness rule -> the log."""
+    from services.segtrain.border import calibrate_border_net
+
+    t0 = time.perf_counter()
+    images, labels = seg_data.training_set(seed=seed, input_size=INPUT_SIZE, budget_s=budget_s,
+                                           max_frames=frames, workers=args.workers,
+                                           cache=not args.no_cache, turn_prob=args.turn_prob)
+    render_s = time.perf_counter() - t0
+    result = calibrate_border_net(model_path, images, labels, seed=seed)
+    if result["border_net"] is not None:
+        set_metadata(model_path, border_net=result["border_net"])
+    log = {k: v for k, v in result.items() if k != "border_net"}
+    log.update(kept=result["border_net"] is not None, model=str(model_path), seed=seed,
+               frames=len(images), render_s=round(render_s, 1))
+    logger.info("border classifier of %s: %s", model_path, log)
+    return log
 
 
 def _metadata(path) -> dict:
@@ -164,6 +181,10 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
 
 def _finish(args, out: Path, result: dict, t_start: float) -> int:
     minutes = float(args.minutes)
+    if args.border_frames:  # all its frames rendered: no time budget
+        result["border"] = fit_border_step(out / "roadseg.onnx", seed=args.border_seed,
+                                           frames=args.border_frames, args=args,
+                                           budget_s=24 * 3600.0)
     result["minutes"] = minutes
     result["turn_prob"] = args.turn_prob
     result["command"] = " ".join(
@@ -179,7 +200,11 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
         + ([f"--hard-pixels {args.hard_pixels:g}"] if args.hard_pixels < 1.0 else [])
         + ([f"--mirror-consistency {args.mirror_consistency:g}"]
            if args.mirror_consistency else [])
-        + ([f"--crop {args.crop}"] if args.crop != DEFAULT_CROP else []))
+        + ([f"--crop {args.crop}"] if args.crop != DEFAULT_CROP else [])
+        + ([f"--border-frames {args.border_frames}"] if args.border_frames else [])
+        + ([f"--border-seed {args.border_seed}"]
+           if args.border_frames and args.border_seed != args.seed + BORDER_SEED_OFFSET
+           else []))
     result["total_s"] = round(time.perf_counter() - t_start, 1)
     (out / "train_log.json").write_text(json.dumps(result, indent=2))
     (out / "MODEL_CARD.md").write_text(model_card(result))
@@ -819,8 +844,9 @@ def model_card(result: dict) -> str:
   common.segmentation.refine_paint_borders; calibrate_refine: the setting maximising the mean
   paint IoU on the same town frames as the offsets, {{}} = off): {result.get("refine")}.
   A learned border classifier (metadata `border_net`, which the runtime then uses instead:
-  `segmentation.border_net`, on by default) is fitted afterwards, on town frames of another
-  seed: `roadmap train-seg --border-only DIR/roadseg.onnx --out DIR --seed S --frames 2880`.
+  `segmentation.border_net`, on by default) is fitted afterwards on town frames of another
+  seed (`--border-frames N`, or later `roadmap train-seg --border-only DIR/roadseg.onnx --out
+  DIR --seed S --frames 2880`): {_border_text(result.get("border"))}.
 - **Validation** (the other half of the held-out procedural-town frames, model input size):
   {result["val_iou_town"]} (torch, before the border refinement); as the runtime segments them:
   {result.get("val_iou_town_runtime")}.
@@ -846,6 +872,18 @@ def _output_text(result: dict, w: int, h: int) -> str:
     return (f"float32 [1, 6, {h // 2}, {w // 2}] (1/2 of the input); OnnxSegmenter upsamples "
             f"them bilinearly to {w}x{h} (half-pixel centres, as torch's align_corners=False) "
             "and takes the argmax over axis 1")
+
+
+def _border_text(border: dict | None) -> str:
+    if not border:
+        return "none fitted by this run"
+    check = border["check"]
+    verdict = "kept" if border["kept"] else "not kept: it did not beat the rule"
+    return (f"{border['frames']} frames of seed {border['seed']} (fitted on "
+            f"{border['samples']} border pixels of the first {border['fit_frames']}); mean "
+            f"paint IoU on the last {border['check_frames']} "
+            f"{check['border_net']['paint']:.4f} against the rule's "
+            f"{check['rule']['paint']:.4f}: {verdict}")
 
 
 def _crop_text(result: dict) -> str:

@@ -196,3 +196,14 @@ def test_border_only_refuses_the_seed_the_model_was_trained_on(tmp_path, capsys)
     assert main(["train-seg", "--border-only", str(model), "--seed", "0",
                  "--out", str(tmp_path)]) == 1
     assert "another --seed" in capsys.readouterr().err
+
+
+def test_a_training_run_refuses_its_own_seed_for_the_border_classifier(tmp_path, capsys):
+    """`--border-frames` fits the classifier after training on --border-seed's towns (default
+    --seed + 31); the network's own towns are refused before any rendering."""
+    from services.cli import main
+
+    assert main(["train-seg", "--out", str(tmp_path), "--seed", "4", "--border-frames", "64",
+                 "--border-seed", "4"]) == 1
+    assert "another seed" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())  # nothing rendered, trained or written
