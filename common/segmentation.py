@@ -514,9 +514,9 @@ def border_features(gray: np.ndarray, labels: np.ndarray, scores: np.ndarray,
     - the network's scores at the pixel less their maximum, floored at -8, / 4;
     - (p - r) / 64, r / 128, and the shares of road and of paint in the box.
     Patches reaching past the image's edges repeat its edge pixels. `paint`: the labels'
-    _paint_mask, when the caller has it. The array is the
-    transpose of a C-contiguous (BORDER_FEATURES, N) buffer: numpy reduces along a feature
-    block 50x faster in that layout than across a row of an (N, F) array."""
+    _paint_mask, when the caller has it. The array is the transpose of a C-contiguous
+    (BORDER_FEATURES, N) buffer: numpy reduces along a feature block 50x faster in that
+    layout than across a row of an (N, F) array."""
     h, w = labels.shape
     r = BORDER_PATCH
     ys, xs = np.divmod(border, w)

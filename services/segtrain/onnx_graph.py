@@ -23,18 +23,20 @@ def split_concatenations(proto) -> int:
 
     graph = proto.graph
     tensors = {t.name: t for t in graph.initializer}
+    # one list of the node objects, so that the id()s the rewrite is keyed on stay theirs
+    nodes = list(graph.node)
     consumers: dict[str, list] = {}
-    for node in graph.node:
+    for node in nodes:
         for name in node.input:
             consumers.setdefault(name, []).append(node)
-    producer = {out: node for node in graph.node for out in node.output}
+    producer = {out: node for node in nodes for out in node.output}
 
     def array(name):
         return numpy_helper.to_array(tensors[name])
 
     def only_consumer(name, op_type):
-        nodes = consumers.get(name, [])
-        return nodes[0] if len(nodes) == 1 and nodes[0].op_type == op_type else None
+        users = consumers.get(name, [])
+        return users[0] if len(users) == 1 and users[0].op_type == op_type else None
 
     def channels(name):  # the output channels of the Conv that (through Resize, Relu) made it
         node = producer.get(name)
@@ -43,7 +45,7 @@ def split_concatenations(proto) -> int:
         return None if node is None else int(tensors[node.input[1]].dims[0])
 
     replaced, added, weights = set(), {}, []
-    for cat in [n for n in graph.node if n.op_type == "Concat"]:
+    for cat in [n for n in nodes if n.op_type == "Concat"]:
         dw = only_consumer(cat.output[0], "Conv")
         attrs = {} if dw is None else {a.name: helper.get_attribute_value(a) for a in dw.attribute}
         relu = dw and only_consumer(dw.output[0], "Relu")
@@ -56,7 +58,7 @@ def split_concatenations(proto) -> int:
         w_dw, b_dw, w_pw = array(dw.input[1]), array(dw.input[2]), array(pw.input[1])
         if None in sizes or not sum(sizes) == len(w_dw) == attrs["group"]:
             continue
-        nodes, sums, start = [], [], 0
+        new, sums, start = [], [], 0
         for k, (name, size) in enumerate(zip(cat.input, sizes, strict=True)):
             part, prefix = slice(start, start + size), f"{cat.name}{SPLIT}{k}"
             start += size
@@ -64,26 +66,26 @@ def split_concatenations(proto) -> int:
                                   ("pw_w", w_pw[:, part])):
                 weights.append(numpy_helper.from_array(np.ascontiguousarray(value),
                                                        f"{prefix}/{suffix}"))
-            nodes.append(helper.make_node("Conv", [name, f"{prefix}/dw_w", f"{prefix}/dw_b"],
+            new.append(helper.make_node("Conv", [name, f"{prefix}/dw_w", f"{prefix}/dw_b"],
                                           [f"{prefix}/dw"], name=f"{prefix}/dw",
                                           **{**attrs, "group": size}))
-            nodes.append(helper.make_node("Relu", [f"{prefix}/dw"], [f"{prefix}/relu"],
+            new.append(helper.make_node("Relu", [f"{prefix}/dw"], [f"{prefix}/relu"],
                                           name=f"{prefix}/relu"))
             bias = [pw.input[2]] if k == 0 else []
-            nodes.append(helper.make_node("Conv", [f"{prefix}/relu", f"{prefix}/pw_w", *bias],
+            new.append(helper.make_node("Conv", [f"{prefix}/relu", f"{prefix}/pw_w", *bias],
                                           [f"{prefix}/pw"], name=f"{prefix}/pw"))
             sums.append(f"{prefix}/pw")
         total = sums[0]
         for k, part in enumerate(sums[1:], 1):
             out = pw.output[0] if k == len(sums) - 1 else f"{cat.name}{SPLIT}/sum{k}"
-            nodes.append(helper.make_node("Add", [total, part], [out], name=out))
+            new.append(helper.make_node("Add", [total, part], [out], name=out))
             total = out
         replaced |= {id(cat), id(dw), id(relu), id(pw)}
-        added[id(cat)] = nodes
+        added[id(cat)] = new
     if not added:
         return 0
     kept = []
-    for node in graph.node:  # the new nodes where their Concat was: still in execution order
+    for node in nodes:  # the new nodes where their Concat was: still in execution order
         kept.extend(added.get(id(node), []) if id(node) in replaced else [node])
     used = {name for node in kept for name in node.input}
     del graph.node[:]

@@ -45,7 +45,7 @@ def train_command(args, cfg) -> int:
         args.turn_prob = seg_data.TURN_PROB
     check_hard_pixels(args.hard_pixels)  # before minutes of rendering
     check_mirror(args.mirror_consistency, args.batch)
-    if getattr(args, "border_seed", None) is None:
+    if args.border_seed is None:
         args.border_seed = args.seed + BORDER_SEED_OFFSET
     if args.border_frames and args.border_seed == args.seed:
         raise ConfigError(f"--border-seed {args.border_seed}: the border classifier must be "
