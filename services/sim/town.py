@@ -1,6 +1,11 @@
 """Seeded procedural town: a jittered street grid with straight and curved multi-lane roads,
 intersections with stop lines, zebra crossings, turn arrows and road text, and a GNSS-blocked
-stretch of at least 300 m. Local ENU metres; right-hand traffic."""
+stretch of at least 300 m. Local ENU metres; right-hand traffic.
+
+By default every road has one lane each way except one arterial row with two. Segmentation
+training asks for wide roads too (`lane_mix`, `median_prob`): up to four lanes each way, some
+split by a raised median, as the arterials of real maps are (the Argoverse 2 worlds' far field
+is many converging lines, which towns of one- and two-lane roads never show)."""
 
 import math
 from dataclasses import dataclass
@@ -27,10 +32,16 @@ class Edge:
     lanes: int  # per direction
     center: np.ndarray  # (N, 2) road centre line from node a to node b, cut at the boxes
     lane_w: float = LANE_W_M
+    median: float = 0.0  # width of a raised median between the directions (0: none, paint)
 
     @property
     def half_width(self) -> float:
-        return self.lanes * self.lane_w + SHOULDER_M
+        return 0.5 * self.median + self.lanes * self.lane_w + SHOULDER_M
+
+    def lane_offset(self, lane: float) -> float:
+        """Signed offset from the centre line of a point `lane` lane widths into the right-hand
+        carriageway (0: its inner edge, beside the median or the centre line)."""
+        return -(0.5 * self.median + self.lane_w * lane)
 
 
 def _grid_shape(km: float) -> tuple[int, int]:
@@ -58,7 +69,10 @@ def _bent(a: np.ndarray, b: np.ndarray, amp_m: float) -> np.ndarray:
     return a + t[:, None] * d + (amp_m * np.sin(np.pi * t) ** 2)[:, None] * n
 
 
-def _edges(nodes, nx, ny, rng) -> list[Edge]:
+def _edges(nodes, nx, ny, rng, lane_mix=None, median_prob=0.0) -> list[Edge]:
+    """lane_mix: probabilities of 1, 2, ... lanes each way for every road (the arterial row
+    draws at least two); None: one lane, two on the arterial row. A road of two or more lanes
+    gets a raised median (1-4 m) with median_prob."""
     idx = lambda i, j: j * nx + i  # noqa: E731
     arterial_row = int(rng.integers(ny))
     pairs = [
@@ -69,7 +83,15 @@ def _edges(nodes, nx, ny, rng) -> list[Edge]:
     for a, b, arterial in pairs:
         amp = rng.uniform(-18.0, 18.0) if rng.random() < 0.4 else 0.0
         lane_w = rng.uniform(3.0, 3.75)  # lane widths vary from road to road
-        edges.append(Edge(a, b, 2 if arterial else 1, _bent(nodes[a], nodes[b], amp), lane_w))
+        lanes, median = (2 if arterial else 1), 0.0
+        if lane_mix is not None:
+            p = np.asarray(lane_mix, float)
+            if arterial and len(p) > 1:
+                p = np.concatenate([[0.0], p[1:]])
+            lanes = 1 + int(rng.choice(len(p), p=p / p.sum()))
+            if lanes >= 2 and rng.random() < median_prob:
+                median = float(rng.uniform(1.0, 4.0))
+        edges.append(Edge(a, b, lanes, _bent(nodes[a], nodes[b], amp), lane_w, median))
     return edges
 
 
@@ -88,9 +110,14 @@ def _cut_edges(edges, nodes):
 
 def _road_markings(e: Edge, rng, crosswalk_ends: set) -> list[Marking]:
     """Surface, lane lines, and at both ends stop lines, crossings and arrows of one road."""
-    c, n, hw, lw = e.center, e.lanes, e.half_width, e.lane_w
+    c, n, hw = e.center, e.lanes, e.half_width
     s = paint.arc_length(c)
-    out = [Marking(Cls.ROAD, paint.strip(c, 2 * hw), "road")]
+    if e.median > 0:  # two carriageways, the raised median between them off the road surface
+        half = hw - 0.5 * e.median
+        out = [Marking(Cls.ROAD, paint.strip(paint.offset(c, side * (hw - 0.5 * half)), half),
+                       "road") for side in (-1, 1)]
+    else:
+        out = [Marking(Cls.ROAD, paint.strip(c, 2 * hw), "road")]
     zone = {end: (7.0 if end in crosswalk_ends else 1.5) for end in (e.a, e.b)}
     lo, hi = zone[e.a] + 0.5, s[-1] - zone[e.b] - 0.5
     body = paint.sub_polyline(c, s, lo, hi)
@@ -102,24 +129,24 @@ def _road_markings(e: Edge, rng, crosswalk_ends: set) -> list[Marking]:
         for a_, b_ in ((0.0, 20.0), (sb[-1] - 20.0, sb[-1])):
             out += paint.line_markings(paint.sub_polyline(body, sb, a_, b_), "solid")
     else:
-        out += paint.line_markings(body, "double")
-        for side in (-1, 1):
-            out += paint.line_markings(paint.offset(body, side * lw), "dashed", 0.15, 6.0, 12.0)
+        if e.median > 0:  # a solid line along each side of the median
+            for side in (-1, 1):
+                out += paint.line_markings(paint.offset(body, side * (0.5 * e.median + 0.1)),
+                                           "solid", EDGE_LINE_M)
+        else:
+            out += paint.line_markings(body, "double")
+        for k in range(1, n):
+            for side in (-1, 1):
+                out += paint.line_markings(paint.offset(body, -side * e.lane_offset(k)),
+                                           "dashed", 0.15, 6.0, 12.0)
     for side in (-1, 1):
-        out += paint.line_markings(paint.offset(body, side * (n * lw + 0.1)), "solid", EDGE_LINE_M)
-    out += _end_features(c, s, n, hw, lw=lw, forward=True, crosswalk=e.b in crosswalk_ends, rng=rng)
-    out += _end_features(
-        c[::-1],
-        paint.arc_length(c[::-1]),
-        n,
-        hw,
-        lw=lw,
-        forward=False,
-        crosswalk=e.a in crosswalk_ends,
-        rng=rng,
-    )
+        out += paint.line_markings(paint.offset(body, -side * (e.lane_offset(n) - 0.1)),
+                                   "solid", EDGE_LINE_M)
+    out += _end_features(c, s, e, forward=True, crosswalk=e.b in crosswalk_ends, rng=rng)
+    out += _end_features(c[::-1], paint.arc_length(c[::-1]), e, forward=False,
+                         crosswalk=e.a in crosswalk_ends, rng=rng)
     if s[-1] > 100.0 and rng.random() < 0.5:  # road text in the right lane, mid-block
-        x, y, yaw = _pose_at(c, s, 0.5 * s[-1], -lw * (n - 0.5))
+        x, y, yaw = _pose_at(c, s, 0.5 * s[-1], e.lane_offset(n - 0.5))
         out += paint.text_block(TEXTS[int(rng.integers(len(TEXTS)))], x, y, yaw)
     return out
 
@@ -133,8 +160,9 @@ def _pose_at(c, s, at, lateral):
     return x - math.sin(yaw) * lateral, y + math.cos(yaw) * lateral, yaw
 
 
-def _end_features(c, s, n, hw, *, lw, forward, crosswalk, rng) -> list[Marking]:
+def _end_features(c, s, e: Edge, *, forward, crosswalk, rng) -> list[Marking]:
     """Stop line over the incoming (right) lanes, optional zebra and turn arrows at c's far end."""
+    n, hw = e.lanes, e.half_width
     out = []
     end = s[-1] - 1.0
     if crosswalk:
@@ -142,10 +170,10 @@ def _end_features(c, s, n, hw, *, lw, forward, crosswalk, rng) -> list[Marking]:
         b = _pose_at(c, s, end - 2.0, -hw + 0.5)
         out += paint.zebra_across(np.array(a[:2]), np.array(b[:2]), depth_m=4.0)
         end -= 5.5
-    p0, p1 = _pose_at(c, s, end, -0.1), _pose_at(c, s, end, -n * lw)
+    p0, p1 = _pose_at(c, s, end, e.lane_offset(0) - 0.1), _pose_at(c, s, end, e.lane_offset(n))
     out.append(paint.stop_line(np.array(p0[:2]), np.array(p1[:2])))
     for lane in range(n):
-        x, y, yaw = _pose_at(c, s, end - 14.0, -lw * (lane + 0.5))
+        x, y, yaw = _pose_at(c, s, end - 14.0, e.lane_offset(lane + 0.5))
         if n == 2:
             kind = (
                 "arrow_left"
@@ -199,7 +227,7 @@ def _lane_route(path, edges, nodes, lane: int) -> np.ndarray:
     for a, b in zip(path[:-1], path[1:], strict=False):
         e = next(e for e in edges if {e.a, e.b} == {a, b})
         c = e.center if e.a == a else e.center[::-1]
-        legs.append(paint.offset(c, -e.lane_w * (min(lane, e.lanes - 1) + 0.5)))
+        legs.append(paint.offset(c, e.lane_offset(min(lane, e.lanes - 1) + 0.5)))
     pts = [legs[0]]
     for prev, nxt in zip(legs[:-1], legs[1:], strict=False):
         p0, p2 = prev[-1], nxt[0]
@@ -218,11 +246,12 @@ def _lane_route(path, edges, nodes, lane: int) -> np.ndarray:
     return paint.dedupe(np.concatenate(pts))
 
 
-def build_town(km: float = 2.0, seed: int = 0) -> World:
+def build_town(km: float = 2.0, seed: int = 0, lane_mix=None, median_prob: float = 0.0) -> World:
+    """lane_mix, median_prob: wide roads (`_edges`); the default town has none."""
     rng = np.random.default_rng(seed)
     nx, ny = _grid_shape(km)
     nodes = _nodes(nx, ny, rng)
-    edges = _edges(nodes, nx, ny, rng)
+    edges = _edges(nodes, nx, ny, rng, lane_mix, median_prob)
     _cut_edges(edges, nodes)
     crosswalk_ends = {int(k) for k in np.flatnonzero(rng.random(len(nodes)) < 0.5)}
     markings = _intersections(edges, nodes)
@@ -234,6 +263,9 @@ def build_town(km: float = 2.0, seed: int = 0) -> World:
         _lane_route(path[::-1], edges, nodes, 0),
         _lane_route(path, edges, nodes, 1),
     ]
+    most = max(e.lanes for e in edges)
+    routes += [_lane_route(path[::-1] if lane % 2 else path, edges, nodes, lane)
+               for lane in range(2, most)]  # wide roads: their outer lanes too
     km_road = sum(float(np.linalg.norm(nodes[e.b] - nodes[e.a])) for e in edges) / 1000.0
     return World(
         name=f"town-{km:g}km-s{seed}",

@@ -9,6 +9,7 @@ from common.classes import Cls
 from common.errors import WorldError
 from common.geometry import latlon_to_local_m
 from services.sim import paint
+from services.sim.town import build_town
 from services.sim.worlds import load_world, repaint
 
 
@@ -60,6 +61,47 @@ def test_town_routes_run_on_the_road_and_cross_a_300m_gnss_outage():
     blocked = world.gnss_blocked_at(route)
     assert blocked.sum() * 2.0 >= 300.0
     assert not blocked[:50].any()  # a drive starts with a fix
+
+
+def test_wide_town_roads_have_their_lanes_a_raised_median_and_routes_on_every_lane():
+    """Training towns (services.segtrain.data.LANE_MIX): four lanes each way split by a median."""
+    world = build_town(1.0, seed=3, lane_mix=(0.0, 0.0, 0.0, 1.0), median_prob=1.0)
+    assert len(world.routes) == 5  # lanes 0 and 1 as the default town, and lanes 2 and 3
+    # across the road from the innermost lane's route, mid-block: to the left the median
+    # (none) between two lines, to the right three and a half lanes of road
+    route = paint.resample(world.routes[0], 2.0)
+    heading = np.gradient(route, axis=0)
+    left = np.stack([-heading[:, 1], heading[:, 0]], 1) / np.linalg.norm(heading, axis=1)[:, None]
+    steps = np.arange(0.0, 14.0, 0.1)
+    across = route[:, None, :] + steps[None, :, None] * left[:, None, :]  # to the left
+    back = route[:, None, :] - steps[None, :, None] * left[:, None, :]  # to the right
+    both = _classes_along(world, np.concatenate([across, back]).reshape(-1, 2))
+    to_left, to_right = both.reshape(2, len(route), len(steps))
+    mid_block = [row[:60] for row in to_left if set(row[:60]) <= {0, Cls.ROAD, Cls.LANE_LINE}]
+    assert len(mid_block) > 0.4 * len(route)  # junctions and crosswalks aside
+
+    def median_between_lines(row):
+        if not (row == 0).any():
+            return False
+        first_none = int(np.argmax(row == 0))
+        return Cls.LANE_LINE in row[:first_none] and Cls.LANE_LINE in row[first_none:]
+
+    assert np.mean([median_between_lines(row) for row in mid_block]) > 0.6
+    widths = [int(np.argmax(row == 0)) * 0.1 for row in to_right if (row == 0).any()]
+    assert np.median(widths) >= 3.5 * 3.0 - 0.2
+    on_road = _classes_along(world, np.concatenate([paint.resample(r, 2.0)
+                                                    for r in world.routes])) >= Cls.ROAD
+    assert on_road.mean() > 0.97
+
+
+def test_wide_roads_are_opt_in():
+    """The default town (demo, tests) keeps one lane each way, two on its arterial row."""
+    world = load_world("town:1", seed=4)
+    assert len(world.routes) == 3
+    roads = [m for m in world.markings if m.cls == Cls.ROAD and m.kind == "road"]
+    wide = build_town(1.0, seed=4, lane_mix=(0.0, 0.0, 0.0, 1.0), median_prob=1.0)
+    assert len([m for m in wide.markings if m.cls == Cls.ROAD and m.kind == "road"]) == \
+        2 * len(roads)  # every road split in two carriageways
 
 
 def test_repaint_moves_one_line_about_a_metre():
