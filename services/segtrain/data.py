@@ -32,6 +32,11 @@ TURN_PROB = 0.2
 # 10) with sunlit faces, where the curb (face and top, ~180 grey) is brighter than the worn paint
 # (~105-160): the model had learnt "the brightest band at the road's edge is paint".
 SUNLIT_CURB = 0.5
+# Lanes each way of the training towns' roads (1, 2, 3, 4) and the share of roads of two or more
+# lanes split by a raised median (services.sim.town): real maps' arterials are wide, and the
+# Argoverse 2 frames' far field, many converging lines, is where their lane line was lost.
+LANE_MIX = (0.45, 0.3, 0.17, 0.08)
+MEDIAN_PROB = 0.35
 
 
 def curb_face_gain(rng) -> float:
@@ -69,7 +74,7 @@ def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
     them; rendering stops at max_frames or when budget_s is spent (whichever comes first)."""
     cache_dir = cache_dir or Path(tempfile.gettempdir()) / "roadmap-segtrain"
     # the budget is in the key: a set cut short by a smaller budget is not reused for a larger
-    path = cache_dir / (f"towns-v8-s{seed}-{input_size[0]}x{input_size[1]}-n{max_frames}"
+    path = cache_dir / (f"towns-v9-s{seed}-{input_size[0]}x{input_size[1]}-n{max_frames}"
                         f"-b{round(budget_s)}-t{round(100 * turn_prob)}.npz")
     if cache and path.is_file():
         logger.info("training frames from cache %s", path)
@@ -348,8 +353,8 @@ def _strip_from(centre, off):
 
 
 def town_world(seed: int, rng):
-    """A training town (0.6-1.5 km) with thinned and restyled paint."""
-    from services.sim.worlds import load_world
+    """A training town (0.6-1.5 km) with wide roads, and thinned and restyled paint."""
+    from services.sim.town import build_town
 
-    world = load_world(f"town:{rng.uniform(0.6, 1.5):.2f}", seed)
+    world = build_town(round(rng.uniform(0.6, 1.5), 2), seed, LANE_MIX, MEDIAN_PROB)
     return thinned(restyled(world, rng), rng)

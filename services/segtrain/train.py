@@ -810,19 +810,20 @@ def model_card(result: dict) -> str:
   same function, faster in onnxruntime: net.aligned, onnx_graph.split_concatenations).
 - **Training data**: only seeded procedural towns (services/sim/town.py), never the Karlsruhe or
   Argoverse 2 benchmark worlds: {result["frames"]} frames in chunks of one town each (seeded by
-  (seed, chunk), services/segtrain/data.py), 70 % rendered by the simulator's renderer
-  (services/sim/render.py: random looks, worn paint, raised curbs and sidewalks, shadows, haze,
-  skyline, other cars) and 30 % by services/segtrain/synth.py (more materials, curb face / top /
-  sidewalk bands); curb faces sunlit in {100 * seg_data.SUNLIT_CURB:.0f} % of the looks (then
-  the curb is often brighter than worn paint), else in shade; at random route poses (half facing
-  stop lines, crosswalks or signs, {100 * result.get("turn_prob", seg_data.TURN_PROB):.0f} %
-  turned 15-90 deg off the route: lane lines crossing the view), with camera height
-  1.25-1.75 m, pitch 1.5-7 deg, roll/yaw jitter, focal length +-15 %, principal point and
-  distortion jitter. The towns' paint is restyled per town (`restyled`, `thinned`): edge lines
-  dropped on 40-100 % of road sides (curb-only edges; 85 % of looks draw curbs), shoulders
-  narrowed to none, lane-line widths 0.10-0.16 m and patches of thick 0.2-0.3 m lines, 5-35 %
-  of lane-line pieces removed. Training-time augmentation: brightness, contrast, colour cast,
-  gamma, blur, noise, horizontal flips, {_crop_text(result)}.
+  (seed, chunk), services/segtrain/data.py); roads of 1 / 2 / 3 / 4 lanes each way in
+  {_percent_list(seg_data.LANE_MIX)} % of the towns' roads, {100 * seg_data.MEDIAN_PROB:.0f} % of
+  those of two or more split by a raised median 1-4 m wide; 70 % rendered by the simulator's
+  renderer (services/sim/render.py: random looks, worn paint, raised curbs and sidewalks, shadows,
+  haze, skyline, other cars) and 30 % by services/segtrain/synth.py (more materials, curb face / top
+  / sidewalk bands); curb faces sunlit in {100 * seg_data.SUNLIT_CURB:.0f} % of the looks (then the
+  curb is often brighter than worn paint), else in shade; at random route poses (half facing stop
+  lines, crosswalks or signs, {100 * result.get("turn_prob", seg_data.TURN_PROB):.0f} % turned 15-90
+  deg off the route: lane lines crossing the view), with camera height 1.25-1.75 m, pitch 1.5-7 deg,
+  roll/yaw jitter, focal length +-15 %, principal point and distortion jitter. The towns' paint is
+  restyled per town (`restyled`, `thinned`): edge lines dropped on 40-100 % of road sides (curb-only
+  edges; 85 % of looks draw curbs), shoulders narrowed to none, lane-line widths 0.10-0.16 m and
+  patches of thick 0.2-0.3 m lines, 5-35 % of lane-line pieces removed. Training-time augmentation:
+  brightness, contrast, colour cast, gamma, blur, noise, horizontal flips, {_crop_text(result)}.
 - **Auxiliary class**: training labels mark raised curbs (their vertical face and top band, from
   the renderers' curb geometry) as a 7th class; the export folds it into none (channel 0 = max
   of none and curb logits at 1/2 resolution), so the model's outputs are our 6 classes. A light
@@ -884,6 +885,10 @@ def _border_text(border: dict | None) -> str:
             f"paint IoU on the last {border['check_frames']} "
             f"{check['border_net']['paint']:.4f} against the rule's "
             f"{check['rule']['paint']:.4f}: {verdict}")
+
+
+def _percent_list(shares) -> str:
+    return " / ".join(f"{100 * p:.0f}" for p in shares)
 
 
 def _crop_text(result: dict) -> str:
