@@ -103,6 +103,11 @@ class SegmentationConfig:
     # (`refine`): on the benchmark's frames +0.0125 lane-line, +0.012 crosswalk, +0.017
     # stop-line IoU, for 1.3 ms a frame more at p50 (2 ms at p95); false: the rule
     border_net: bool = True
+    # the network also run on the mirror image and the two averaged, when the model's
+    # metadata asks for it (`flip_average`; the packaged model does): on the benchmark's
+    # frames +0.011 mean lane-line IoU, for ~5 ms a frame more (common/models/MODEL_CARD.md);
+    # false: one run a frame
+    flip_average: bool = True
 
 
 @dataclass(frozen=True)

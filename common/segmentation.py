@@ -147,6 +147,7 @@ class OnnxSegmenter(Segmenter):
         border_net: dict | bool | None = None,
         min_margin: float = 0.0,
         sky_fraction: float = 0.0,
+        flip_average: bool | None = None,
         name: str | None = None,
     ):
         path = Path(model_path)
@@ -217,6 +218,11 @@ class OnnxSegmenter(Segmenter):
         self.border_net = BorderNet(border_net) if border_net else None
         if self.border_net and len(self.priority) != 1:
             raise ConfigError("border_net needs a model with one output head")
+        # the network run on the image and on its mirror image, the mirror's scores mirrored
+        # back and the two averaged (test-time flip averaging): None takes the model's
+        # metadata `flip_average` (off when it has none); twice the network's time
+        self.flip_average = bool(meta.get("flip_average", False) if flip_average is None
+                                 else flip_average)
 
     def _heads(self, head_map, priority):
         outputs = self._session.get_outputs()
@@ -273,7 +279,7 @@ class OnnxSegmenter(Segmenter):
         small = image_rgb  # resized once, for the network and the refinement
         if small.shape[:2] != (h, w):
             small = cv2.resize(small, (w, h), interpolation=cv2.INTER_AREA)
-        outs = self._session.run(self.priority, {self._input_name: self.preprocess(small)})
+        outs = self._run(self.preprocess(small))
         out_w, out_h = out_size or (w, h)
         sky = round(self.sky_rows * out_h / h)  # rows labelled 0, at the output size
         band = (out_w, out_h - sky)  # (W, H) of the labels the network gives
@@ -312,6 +318,16 @@ class OnnxSegmenter(Segmenter):
             if score_at is not None:
                 score_at = partial(_rows_below, score_at, sky)
         return small, labels.astype(np.uint8), score_at
+
+    def _run(self, x: np.ndarray) -> list[np.ndarray]:
+        """The outputs of the heads in `priority` for model input `x` (1, 3, h, w); with
+        `flip_average`, the mean of those of `x` and of its mirror image (mirrored back)."""
+        outs = self._session.run(self.priority, {self._input_name: x})
+        if not self.flip_average:
+            return outs
+        mirrored = self._session.run(self.priority,
+                                     {self._input_name: np.ascontiguousarray(x[..., ::-1])})
+        return [0.5 * (a + b[..., ::-1]) for a, b in zip(outs, mirrored, strict=True)]
 
     def refined_borders(self, small, image_rgb, labels, score_at) -> np.ndarray:
         """The paint borders of network_labels' `labels` re-decided on the image: by the
@@ -740,10 +756,12 @@ def configured_onnx(seg, *, min_margin: float = 0.0, camera=None) -> OnnxSegment
     each set their own (vehicle.paint_min_margin, localizer.paint_min_margin). Given the
     `camera` (CameraModel) and `seg.sky_margin_deg` >= 0, the rows above rays rising that far
     above level are not segmented (OnnxSegmenter's sky_fraction). The model's learned border
-    classifier runs if it has one, unless `seg.border_net` is off (then its brightness rule)."""
+    classifier runs if it has one, unless `seg.border_net` is off (then its brightness rule),
+    and so does flip averaging if the model asks for it, unless `seg.flip_average` is off."""
     from common.camera import sky_fraction
 
     sky = 0.0 if camera is None else sky_fraction(camera, seg.sky_margin_deg)
     return get_segmenter("onnx", model_path=seg.model_path,
                          intra_op_threads=seg.intra_op_threads, min_margin=min_margin,
-                         sky_fraction=sky, border_net=None if seg.border_net else False)
+                         sky_fraction=sky, border_net=None if seg.border_net else False,
+                         flip_average=None if seg.flip_average else False)

@@ -128,8 +128,9 @@ def test_min_margin_drops_exactly_the_marking_pixels_the_model_is_unsure_of():
     plain = OnnxSegmenter(refine={}, border_net=False).segment(image)
     gated_seg = OnnxSegmenter(refine={}, border_net=False, min_margin=2.0)
     gated = gated_seg.segment(image)
-    # the margin from the raw logits, upsampled as the runtime does
-    (logits,) = gated_seg._session.run(None, {"image": gated_seg.preprocess(image)})
+    # the margin from the network's logits (flip-averaged, as the model asks), upsampled as
+    # the runtime does
+    (logits,) = gated_seg._run(gated_seg.preprocess(image))
     up = np.stack([cv2.resize(c, (640, 360), interpolation=cv2.INTER_LINEAR) for c in logits[0]])
     top2 = np.sort(up, axis=0)[-2:]
     unsure = (plain >= Cls.LANE_LINE) & (top2[1] - top2[0] < 2.0)
@@ -223,3 +224,19 @@ def test_configured_segmenter_leaves_out_the_cameras_sky():
     off = dataclasses.replace(cfg.segmentation, sky_margin_deg=-1.0)
     assert configured_onnx(off, camera=camera).sky_rows == 0
     assert configured_onnx(cfg.segmentation).sky_rows == 0  # no camera: every row
+
+
+@needs_model
+def test_flip_averaging_mirrors_the_mirror_images_scores_back(rng):
+    """The scores of the image and of its mirror image, mirrored back, averaged: so those of a
+    mirrored image are exactly the mirror of the image's."""
+    plain = OnnxSegmenter(flip_average=False)
+    flip = OnnxSegmenter(flip_average=True)
+    image = rng.integers(0, 255, (360, 640, 3), dtype=np.uint8)
+    x, mirrored = flip.preprocess(image), flip.preprocess(np.ascontiguousarray(image[:, ::-1]))
+    (scores,), (of_mirror,) = flip._run(x), flip._run(mirrored)
+    np.testing.assert_array_equal(of_mirror, scores[..., ::-1])
+    (a,), (b,) = plain._run(x), plain._run(mirrored)
+    np.testing.assert_allclose(scores, 0.5 * (a + b[..., ::-1]), atol=1e-6)
+    assert not np.allclose(a, scores, atol=1e-3)  # the network itself is not symmetric
+
