@@ -240,3 +240,16 @@ def test_flip_averaging_mirrors_the_mirror_images_scores_back(rng):
     np.testing.assert_allclose(scores, 0.5 * (a + b[..., ::-1]), atol=1e-6)
     assert not np.allclose(a, scores, atol=1e-3)  # the network itself is not symmetric
 
+
+@needs_model
+def test_flip_averaging_follows_the_model_unless_configured_off():
+    import dataclasses
+
+    from common.config import RoadmapConfig
+    from common.segmentation import configured_onnx
+
+    assert OnnxSegmenter().flip_average  # the packaged model's metadata asks for it
+    assert not OnnxSegmenter(flip_average=False).flip_average
+    cfg = RoadmapConfig().segmentation
+    assert configured_onnx(cfg).flip_average
+    assert not configured_onnx(dataclasses.replace(cfg, flip_average=False)).flip_average
