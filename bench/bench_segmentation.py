@@ -2,7 +2,7 @@
 (Karlsruhe Lanelet2 and Argoverse 2 worlds, never trained on) and its speed on one core.
 
     python bench/bench_segmentation.py --out DIR [--quick] [--frames N] [--model M.onnx]
-        [--no-border-net] [--baseline B.onnx [--baseline-borders rule|none]]
+        [--no-border-net] [--no-flip-average] [--baseline B.onnx [--baseline-borders rule|none]]
         -> DIR/segmentation.json
 
 Frames: the simulator's renderer at seeded random poses on the world's routes (30 % facing a stop
@@ -154,10 +154,12 @@ def speed(seg, frames: list, *, repeats: int) -> dict:
 
 def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES,
         baseline_path: str | None = None, baseline_borders: str = "model",
-        sky_margin_deg: float | None = None, border_net: bool | None = None) -> dict:
+        sky_margin_deg: float | None = None, border_net: bool | None = None,
+        flip_average: bool | None = None) -> dict:
     """border_net: None, the model's learned border classifier if it has one (as the product
     runs it); False, its brightness rule. baseline_borders: how the baseline decides its paint
-    borders: "model" (as the product), "rule" (its brightness rule) or "none"."""
+    borders: "model" (as the product), "rule" (its brightness rule) or "none". flip_average:
+    None, as the model's metadata asks (as the product runs it); False / True, off / on."""
     import onnxruntime
 
     if sky_margin_deg is None:
@@ -165,10 +167,10 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
     # the rows the product leaves out for render_heldout's camera
     sky = sky_fraction(camera_from_config(CameraConfig()), sky_margin_deg)
     seg = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, sky_fraction=sky,
-                        border_net=border_net)
+                        border_net=border_net, flip_average=flip_average)
     # the model as the mapping vehicles run it: paint it is unsure of left unknown
     gated = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, sky_fraction=sky,
-                          min_margin=VehicleConfig().paint_min_margin)
+                          min_margin=VehicleConfig().paint_min_margin, flip_average=flip_average)
     borders = {"model": {}, "rule": {"border_net": False},
                "none": {"border_net": False, "refine": {}}}[baseline_borders]
     baseline = (get_segmenter("onnx", model_path=baseline_path, intra_op_threads=1,
@@ -179,6 +181,7 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
         "model": seg.name, "model_bytes": Path(model_path or DEFAULT_MODEL).stat().st_size,
         "refine": seg.refine,  # paint borders re-decided on the image ({}: off)
         "border_net": seg.border_net is not None,  # by the learned classifier instead
+        "flip_average": seg.flip_average,  # the network's logits of the image and its mirror
         "sky_margin_deg": sky_margin_deg, "sky_rows": seg.sky_rows,  # rows not segmented
         "python": platform.python_version(), "onnxruntime": onnxruntime.__version__,
         "targets": TARGETS, "worlds": {},
@@ -216,6 +219,7 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
             {w: {"iou": e["baseline"]["iou"]} for w, e in report["worlds"].items()}, "iou")
         report["baseline"] = {"model": str(baseline_path), "refine": baseline.refine,
                               "border_net": baseline.border_net is not None,
+                              "flip_average": baseline.flip_average,
                               "iou": base_iou,
                               "diff": _diff(report["iou"], base_iou),
                               "diff_ci90": bootstrap_interval(_means_of_draws(paired))}
@@ -281,10 +285,14 @@ def main(argv=None) -> int:
                         help="decide paint borders by the model's learned border classifier "
                              "(default: if it has one, as segmentation.border_net does); "
                              "--no-border-net: by its brightness rule")
+    parser.add_argument("--flip-average", action=argparse.BooleanOptionalAction, default=None,
+                        help="average the network's logits of each image and of its mirror "
+                             "image (default: if the model's metadata asks for it, as "
+                             "segmentation.flip_average does); --no-flip-average: one run")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     report = run(args.quick, args.model, args.frames, args.baseline, args.baseline_borders,
-                 args.sky_margin_deg, args.border_net)
+                 args.sky_margin_deg, args.border_net, args.flip_average)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "segmentation.json").write_text(json.dumps(report, indent=2))
