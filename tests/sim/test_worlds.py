@@ -70,8 +70,7 @@ def test_wide_town_roads_have_their_lanes_a_raised_median_and_routes_on_every_la
     # across the road from the innermost lane's route, mid-block: to the left the median
     # (none) between two lines, to the right three and a half lanes of road
     route = paint.resample(world.routes[0], 2.0)
-    heading = np.gradient(route, axis=0)
-    left = np.stack([-heading[:, 1], heading[:, 0]], 1) / np.linalg.norm(heading, axis=1)[:, None]
+    left = paint.normals(route)
     steps = np.arange(0.0, 14.0, 0.1)
     across = route[:, None, :] + steps[None, :, None] * left[:, None, :]  # to the left
     back = route[:, None, :] - steps[None, :, None] * left[:, None, :]  # to the right
