@@ -84,7 +84,12 @@ def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
     n_chunks = -(-max_frames // CHUNK_FRAMES)
     jobs = [(seed, k, tuple(input_size), sim, turn_prob) for k in range(n_chunks)]
     t0 = time.perf_counter()
-    frames, labels = [], []
+    w, h = input_size
+    # filled chunk by chunk and permuted in place: 12000 frames are 11 GB, and a list of chunks
+    # concatenated, then permuted by fancy indexing, held three copies (OOM at 24 GB)
+    frames = np.empty((n_chunks * CHUNK_FRAMES, h, w, 3), np.uint8)
+    labels = np.empty((n_chunks * CHUNK_FRAMES, h, w), np.uint8)
+    n = 0
     if workers > 1:
         import multiprocessing
 
@@ -95,25 +100,41 @@ def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
         pool, results = None, map(_render_chunk, jobs)
     try:
         for k, (f, lab) in enumerate(results):
-            frames.append(f)
-            labels.append(lab)
+            frames[n:n + len(f)], labels[n:n + len(f)] = f, lab
+            n += len(f)
             if k % 10 == 9:
-                logger.info("chunk %d: %d frames, %.0f s", k + 1, sum(map(len, frames)),
-                            time.perf_counter() - t0)
+                logger.info("chunk %d: %d frames, %.0f s", k + 1, n, time.perf_counter() - t0)
             if time.perf_counter() - t0 > budget_s:
                 logger.info("render budget %.0f s spent after %d chunks", budget_s, k + 1)
                 break
     finally:
         if pool is not None:
             pool.terminate()
-    frames = np.concatenate(frames)[:max_frames]
-    labels = np.concatenate(labels)[:max_frames]
+    frames, labels = frames[:min(n, max_frames)], labels[:min(n, max_frames)]
     order = np.random.default_rng(seed).permutation(len(frames))
-    frames, labels = frames[order], labels[order]
+    permute_rows(frames, order)
+    permute_rows(labels, order)
     if cache:
         path.parent.mkdir(parents=True, exist_ok=True)
         np.savez(path, frames=frames, labels=labels)
     return frames, labels
+
+
+def permute_rows(a: np.ndarray, order: np.ndarray) -> None:
+    """a[:] = a[order] in place, one row of extra memory (follows the permutation's cycles)."""
+    done = np.zeros(len(order), bool)
+    for start in range(len(order)):
+        if done[start]:
+            continue
+        held, i = a[start].copy(), start
+        while True:
+            done[i] = True
+            j = int(order[i])
+            if j == start:
+                a[i] = held
+                break
+            a[i] = a[j]
+            i = j
 
 
 class FrameStream:

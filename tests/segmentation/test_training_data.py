@@ -63,6 +63,18 @@ def test_training_chunks_are_seeded_and_do_not_depend_on_the_worker_count(tmp_pa
     assert not np.array_equal(f1, f4)
 
 
+def test_permute_rows_in_place_equals_fancy_indexing(rng):
+    """The training set is shuffled in place (a copy of 12000 frames is 11 GB)."""
+    from services.segtrain.data import permute_rows
+
+    for n in (0, 1, 2, 7, 100):
+        a = rng.integers(0, 255, (n, 3, 4), dtype=np.uint8)
+        for order in (np.arange(n), rng.permutation(n)):
+            b = a.copy()
+            permute_rows(b, order)
+            assert np.array_equal(b, a[order])
+
+
 def test_raised_curbs_get_the_auxiliary_training_label_only_when_asked():
     """Training labels mark raised curbs (face and top) as their own class; without it, the
     same pixels are none and nothing else changes."""
