@@ -168,6 +168,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--turn-prob", type=float, default=None,
                    help="share of training poses turned 15-90 deg off the route, lane lines "
                         "crossing the view (default: services/segtrain/data.py TURN_PROB)")
+    p.add_argument("--synth-share", type=float, default=None,
+                   help="share of the training frames rendered by services/segtrain/synth.py, "
+                        "the rest by the simulator's renderer, in tenths (default: "
+                        "services/segtrain/data.py SYNTH_SHARE)")
     p.add_argument("--iou-loss", type=float, default=0.0,
                    help="weight of a soft-Jaccard term (paint and curb classes) added to the "
                         "cross-entropy (default 0: cross-entropy alone)")

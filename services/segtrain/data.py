@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from common.classes import NUM_CLASSES
+from common.errors import ConfigError
 
 logger = logging.getLogger(__name__)
 
@@ -64,9 +65,22 @@ CHUNK_FRAMES = 24  # frames per town chunk: the unit of work, of seeding and of 
 SYNTH_SHARE = 0.3  # chunks 0-2 of every 10 come from synth.py, the rest from the simulator
 
 
+def check_synth_share(share: float) -> None:
+    """--synth-share is a share of every 10 chunks: 0, 0.1, ..., 1."""
+    if not (0.0 <= share <= 1.0 and abs(10 * share - round(10 * share)) < 1e-9):
+        raise ConfigError(f"--synth-share {share}: must be one of 0, 0.1, ..., 1 (a share of "
+                          "every ten chunks)")
+
+
+def _share_key(synth_share: float) -> str:
+    """The cache key's part for the synth share: empty for the default (older caches stay)."""
+    return "" if synth_share == SYNTH_SHARE else f"-y{round(10 * synth_share)}"
+
+
 def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
                  max_frames: int = 6000, workers: int = 1, cache_dir: Path | None = None,
-                 cache: bool = True, turn_prob: float = TURN_PROB):
+                 cache: bool = True, turn_prob: float = TURN_PROB,
+                 synth_share: float = SYNTH_SHARE):
     """(frames (N, H, W, 3) uint8, labels (N, H, W) uint8) from procedural towns; cached.
 
     The set is a sequence of chunks (one town, CHUNK_FRAMES frames each), chunk k rendered from
@@ -75,14 +89,15 @@ def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
     cache_dir = cache_dir or Path(tempfile.gettempdir()) / "roadmap-segtrain"
     # the budget is in the key: a set cut short by a smaller budget is not reused for a larger
     path = cache_dir / (f"towns-v9-s{seed}-{input_size[0]}x{input_size[1]}-n{max_frames}"
-                        f"-b{round(budget_s)}-t{round(100 * turn_prob)}.npz")
+                        f"-b{round(budget_s)}-t{round(100 * turn_prob)}"
+                        f"{_share_key(synth_share)}.npz")
     if cache and path.is_file():
         logger.info("training frames from cache %s", path)
         with np.load(path) as z:
             return z["frames"], z["labels"]
     sim = _sim_available()
     n_chunks = -(-max_frames // CHUNK_FRAMES)
-    jobs = [(seed, k, tuple(input_size), sim, turn_prob) for k in range(n_chunks)]
+    jobs = [(seed, k, tuple(input_size), sim, turn_prob, synth_share) for k in range(n_chunks)]
     t0 = time.perf_counter()
     w, h = input_size
     # filled chunk by chunk and permuted in place: 12000 frames are 11 GB, and a list of chunks
@@ -148,7 +163,7 @@ class FrameStream:
     recipe, not bit for bit."""
 
     def __init__(self, *, seed: int, input_size: tuple[int, int], max_frames: int, workers: int,
-                 turn_prob: float = TURN_PROB):
+                 turn_prob: float = TURN_PROB, synth_share: float = SYNTH_SHARE):
         import multiprocessing
 
         self._dir = Path(tempfile.mkdtemp(prefix="roadmap-stream-"))
@@ -159,7 +174,7 @@ class FrameStream:
         sim = _sim_available()
         self._procs = [ctx.Process(target=_stream_worker, daemon=True,
                                    args=(self._dir, seed, i, workers, self._n_chunks,
-                                         tuple(input_size), sim, turn_prob))
+                                         tuple(input_size), sim, turn_prob, synth_share))
                        for i in range(workers)]
         for proc in self._procs:
             proc.start()
@@ -222,7 +237,7 @@ def _stack(chunks: list):
 
 
 def _stream_worker(folder: Path, seed: int, index: int, workers: int, n_chunks: int,
-                   input_size, sim: bool, turn_prob: float):
+                   input_size, sim: bool, turn_prob: float, synth_share: float):
     import os
     import traceback
 
@@ -232,7 +247,7 @@ def _stream_worker(folder: Path, seed: int, index: int, workers: int, n_chunks: 
         while len(list(folder.glob("*.npz"))) > 4 * workers:  # the trainer is behind: wait
             time.sleep(0.5)
         try:
-            frames, labels = _render_chunk((seed, k, input_size, sim, turn_prob))
+            frames, labels = _render_chunk((seed, k, input_size, sim, turn_prob, synth_share))
         except Exception:
             (folder / f"{k}.err").write_text(traceback.format_exc())
             return
@@ -243,10 +258,10 @@ def _stream_worker(folder: Path, seed: int, index: int, workers: int, n_chunks: 
 
 def _render_chunk(job):
     """CHUNK_FRAMES (frames, labels) of chunk k: one town, synth.py or the simulator."""
-    seed, k, input_size, sim, turn_prob = job
+    seed, k, input_size, sim, turn_prob, synth_share = job
     rng = np.random.default_rng([seed, k])
     world = town_world(10_000 * (seed + 1) + k, rng)
-    if sim and k % 10 >= round(10 * SYNTH_SHARE):
+    if sim and k % 10 >= round(10 * synth_share):
         pairs = _sim_frames(world, rng, turn_prob)
     else:
         from services.segtrain.synth import render_town_frames

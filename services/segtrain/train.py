@@ -43,6 +43,9 @@ def train_command(args, cfg) -> int:
     minutes = float(args.minutes)
     if args.turn_prob is None:
         args.turn_prob = seg_data.TURN_PROB
+    if args.synth_share is None:
+        args.synth_share = seg_data.SYNTH_SHARE
+    seg_data.check_synth_share(args.synth_share)
     check_hard_pixels(args.hard_pixels)  # before minutes of rendering
     check_mirror(args.mirror_consistency, args.batch)
     if args.border_seed is None:
@@ -63,7 +66,8 @@ def train_command(args, cfg) -> int:
     frames, labels = seg_data.training_set(seed=args.seed, input_size=INPUT_SIZE,
                                            budget_s=render_budget_s, max_frames=args.frames,
                                            workers=args.workers, cache=not args.no_cache,
-                                           turn_prob=args.turn_prob)
+                                           turn_prob=args.turn_prob,
+                                           synth_share=args.synth_share)
     render_s = time.perf_counter() - t_start
     if args.render_only:
         logger.info("%d training frames rendered in %.0f s (cached)", len(frames), render_s)
@@ -113,7 +117,8 @@ def fit_border_step(model_path, *, seed: int, frames: int, args, budget_s: float
     t0 = time.perf_counter()
     images, labels = seg_data.training_set(seed=seed, input_size=INPUT_SIZE, budget_s=budget_s,
                                            max_frames=frames, workers=args.workers,
-                                           cache=not args.no_cache, turn_prob=args.turn_prob)
+                                           cache=not args.no_cache, turn_prob=args.turn_prob,
+                                           synth_share=args.synth_share)
     render_s = time.perf_counter() - t0
     result = calibrate_border_net(model_path, images, labels, seed=seed)
     if result["border_net"] is not None:
@@ -159,7 +164,7 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
         os.environ[var] = "1"  # for the render workers (spawned: they read it at import)
     stream = seg_data.FrameStream(seed=args.seed, input_size=INPUT_SIZE,
                                   max_frames=args.frames, workers=args.workers,
-                                  turn_prob=args.turn_prob)
+                                  turn_prob=args.turn_prob, synth_share=args.synth_share)
     try:
         frames, labels = stream.wait(min(STREAM_START_FRAMES, args.frames), timeout_s=30 * 60.0)
         render_s = time.perf_counter() - t_start
@@ -187,6 +192,7 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
                                            budget_s=24 * 3600.0)
     result["minutes"] = minutes
     result["turn_prob"] = args.turn_prob
+    result["synth_share"] = args.synth_share
     result["command"] = " ".join(
         ["roadmap train-seg --out DIR", f"--seed {args.seed}", f"--minutes {minutes:g}",
          f"--frames {args.frames}", f"--workers {args.workers}"]
@@ -196,6 +202,8 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
         + ([f"--arch {args.arch}"] if args.arch != "s" else [])
         + ([f"--init {args.init}"] if args.init else [])
         + ([f"--turn-prob {args.turn_prob:g}"] if args.turn_prob != seg_data.TURN_PROB else [])
+        + ([f"--synth-share {args.synth_share:g}"]
+           if args.synth_share != seg_data.SYNTH_SHARE else [])
         + ([f"--iou-loss {args.iou_loss:g}"] if args.iou_loss else [])
         + ([f"--hard-pixels {args.hard_pixels:g}"] if args.hard_pixels < 1.0 else [])
         + ([f"--mirror-consistency {args.mirror_consistency:g}"]
@@ -791,6 +799,7 @@ def verify_onnx(model, path: Path, x_u8) -> tuple[float, float]:
 
 def model_card(result: dict) -> str:
     w, h = INPUT_SIZE
+    share = result.get("synth_share", seg_data.SYNTH_SHARE)
     return f"""# roadseg.onnx: road-marking segmentation (RoadMap)
 
 - **Classes** (output channel = our class id, DESIGN.md): 0 none/unknown, 1 road surface,
@@ -812,9 +821,10 @@ def model_card(result: dict) -> str:
   Argoverse 2 benchmark worlds: {result["frames"]} frames in chunks of one town each (seeded by
   (seed, chunk), services/segtrain/data.py); roads of 1 / 2 / 3 / 4 lanes each way in
   {_percent_list(seg_data.LANE_MIX)} % of the towns' roads, {100 * seg_data.MEDIAN_PROB:.0f} % of
-  those of two or more split by a raised median 1-4 m wide; 70 % rendered by the simulator's
-  renderer (services/sim/render.py: random looks, worn paint, raised curbs and sidewalks, shadows,
-  haze, skyline, other cars) and 30 % by services/segtrain/synth.py (more materials, curb face / top
+  those of two or more split by a raised median 1-4 m wide; {100 * (1 - share):.0f} % rendered by
+  the simulator's renderer (services/sim/render.py: random looks, worn paint, raised curbs and
+  sidewalks, shadows, haze, skyline, other cars) and {100 * share:.0f} % by
+  services/segtrain/synth.py (more materials, curb face / top
   / sidewalk bands); curb faces sunlit in {100 * seg_data.SUNLIT_CURB:.0f} % of the looks (then the
   curb is often brighter than worn paint), else in shade; at random route poses (half facing stop
   lines, crosswalks or signs, {100 * result.get("turn_prob", seg_data.TURN_PROB):.0f} % turned 15-90

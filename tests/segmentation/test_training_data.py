@@ -61,6 +61,19 @@ def test_training_chunks_are_seeded_and_do_not_depend_on_the_worker_count(tmp_pa
     assert not np.array_equal(f1, f3)
     f4, _ = training_set(workers=1, **{**kw, "turn_prob": 0.0})  # --turn-prob reaches the poses
     assert not np.array_equal(f1, f4)
+    # --synth-share reaches the workers: chunk 0 (synth.py's by default) from the simulator
+    f5, _ = training_set(workers=2, **{**kw, "synth_share": 0.0})
+    assert not np.array_equal(f1, f5)
+
+
+def test_synth_share_is_in_tenths():
+    from services.segtrain.data import check_synth_share
+
+    for share in (0.0, 0.3, 1.0):
+        check_synth_share(share)
+    for share in (-0.1, 0.35, 1.5):
+        with pytest.raises(ConfigError, match="synth-share"):
+            check_synth_share(share)
 
 
 def test_permute_rows_in_place_equals_fancy_indexing(rng):
