@@ -327,7 +327,8 @@ class OnnxSegmenter(Segmenter):
             return outs
         mirrored = self._session.run(self.priority,
                                      {self._input_name: np.ascontiguousarray(x[..., ::-1])})
-        return [0.5 * (a + b[..., ::-1]) for a, b in zip(outs, mirrored, strict=True)]
+        return [0.5 * (a + mirror_logits(b, self.subpixel))
+                for a, b in zip(outs, mirrored, strict=True)]
 
     def refined_borders(self, small, image_rgb, labels, score_at) -> np.ndarray:
         """The paint borders of network_labels' `labels` re-decided on the image: by the
@@ -696,6 +697,19 @@ class UpsampledScores:
         out[:, kept] = np.take(self._blend, column[kept], axis=1)
         out[:, ~kept] = upsampled_at(self.scores, ys[~kept], xs[~kept])
         return out
+
+
+def mirror_logits(logits: np.ndarray, s: int = 1) -> np.ndarray:
+    """Logits (..., C * s * s, h, w) of a mirrored image -> those of the image: columns
+    reversed and, for sub-pixel logits (channel c * s * s + s * i + j is class c at pixel
+    (s y + i, s x + j)), each sub-pixel column j swapped with s - 1 - j, since full-resolution
+    column s x + j of the mirror is column s (w - 1 - x) + (s - 1 - j) of the image."""
+    flipped = logits[..., ::-1]
+    if s == 1:
+        return flipped
+    *lead, c, h, w = flipped.shape
+    return flipped.reshape(*lead, c // (s * s), s, s, h, w)[..., ::-1, :, :].reshape(
+        *lead, c, h, w)
 
 
 def _subpixel_argmax(scores: np.ndarray, s: int) -> np.ndarray:

@@ -241,6 +241,27 @@ def test_flip_averaging_mirrors_the_mirror_images_scores_back(rng):
     assert not np.allclose(a, scores, atol=1e-3)  # the network itself is not symmetric
 
 
+def test_mirror_logits_swaps_sub_pixel_columns(rng):
+    """Sub-pixel logits of a mirrored image, mirrored back, are the image's: the full-resolution
+    planes they shuffle into mirror exactly (a plain column flip would put each pixel one
+    full-resolution column off)."""
+    from common.segmentation import _subpixel_argmax, mirror_logits
+
+    def unshuffled(full, s):  # (C, s h, s w) -> (C s s, h, w), as the model's sub-pixel head
+        c, hh, ww = full.shape
+        return full.reshape(c, hh // s, s, ww // s, s).transpose(0, 2, 4, 1, 3).reshape(
+            c * s * s, hh // s, ww // s)
+
+    for s in (1, 2, 3):
+        full = rng.normal(size=(6, 4 * s, 5 * s)).astype(np.float32)
+        got = mirror_logits(unshuffled(np.ascontiguousarray(full[..., ::-1]), s)[None], s)
+        np.testing.assert_array_equal(got[0], unshuffled(full, s))
+    # applied to an image's logits, the argmax is the mirror of the image's labels
+    full = rng.normal(size=(6, 8, 10)).astype(np.float32)
+    back = _subpixel_argmax(mirror_logits(unshuffled(full, 2), 2), 2)
+    np.testing.assert_array_equal(back, full.argmax(0)[:, ::-1])
+
+
 @needs_model
 def test_flip_averaging_follows_the_model_unless_configured_off():
     import dataclasses
