@@ -274,7 +274,8 @@ class OnnxSegmenter(Segmenter):
         the argmax (OpenCV: half-pixel centres, as torch's align_corners=False), unless they
         are sub-pixel logits (metadata `subpixel`): labels at the input size, resized to
         out_size (nearest) when one is given. `score_at(ys, xs)` -> (C, N) gives the upsampled
-        scores of the last head at label pixels (ys, xs) (None for sub-pixel logits)."""
+        scores of the last head at label pixels (ys, xs) (for sub-pixel logits, those of the
+        pixel's own sub-grid; None when their labels were resized to out_size)."""
         w, h = self.input_size
         small = image_rgb  # resized once, for the network and the refinement
         if small.shape[:2] != (h, w):
@@ -290,7 +291,9 @@ class OnnxSegmenter(Segmenter):
                 arg = _subpixel_argmax(scores, self.subpixel)
                 if band != arg.shape[::-1]:
                     arg = cv2.resize(arg, band, interpolation=cv2.INTER_NEAREST)
-                score_at = None
+                    score_at = None
+                else:
+                    score_at = partial(_subpixel_scores_at, scores, self.subpixel)
             elif band == (2 * scores.shape[2], 2 * scores.shape[1]):
                 upsampled = UpsampledScores(scores)  # our model: only the mixed 2x2 blocks
                 arg, score_at = upsampled.labels, upsampled
@@ -604,6 +607,12 @@ def _lead(scores: np.ndarray) -> np.ndarray:
 def _scores_at(scores: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
     """(C, N) scores of (C, H, W) `scores` at pixels (ys, xs)."""
     return scores[:, ys, xs]
+
+
+def _subpixel_scores_at(scores: np.ndarray, s: int, ys: np.ndarray, xs: np.ndarray):
+    """(C, N) scores of sub-pixel logits (C * s * s, h, w) at full-resolution pixels (ys, xs)."""
+    sub = scores.reshape(-1, s * s, *scores.shape[1:])
+    return sub[:, (ys % s) * s + xs % s, ys // s, xs // s]
 
 
 def upsampled_at(scores: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:

@@ -241,11 +241,11 @@ def test_flip_averaging_mirrors_the_mirror_images_scores_back(rng):
     assert not np.allclose(a, scores, atol=1e-3)  # the network itself is not symmetric
 
 
-def test_mirror_logits_swaps_sub_pixel_columns(rng):
+def test_sub_pixel_logits_mirror_and_score_at_full_resolution(rng):
     """Sub-pixel logits of a mirrored image, mirrored back, are the image's: the full-resolution
     planes they shuffle into mirror exactly (a plain column flip would put each pixel one
     full-resolution column off)."""
-    from common.segmentation import _subpixel_argmax, mirror_logits
+    from common.segmentation import _subpixel_argmax, _subpixel_scores_at, mirror_logits
 
     def unshuffled(full, s):  # (C, s h, s w) -> (C s s, h, w), as the model's sub-pixel head
         c, hh, ww = full.shape
@@ -260,6 +260,10 @@ def test_mirror_logits_swaps_sub_pixel_columns(rng):
     full = rng.normal(size=(6, 8, 10)).astype(np.float32)
     back = _subpixel_argmax(mirror_logits(unshuffled(full, 2), 2), 2)
     np.testing.assert_array_equal(back, full.argmax(0)[:, ::-1])
+    # and the scores at full-resolution pixels (for the border classifier) are the full planes'
+    ys, xs = rng.integers(0, 8, 50), rng.integers(0, 10, 50)
+    np.testing.assert_array_equal(_subpixel_scores_at(unshuffled(full, 2), 2, ys, xs),
+                                  full[:, ys, xs])
 
 
 @needs_model
