@@ -190,8 +190,6 @@ class OnnxSegmenter(Segmenter):
         self.min_margin = float(min_margin)
         if self.min_margin < 0:
             raise ConfigError(f"min_margin must be >= 0 (logits), got {min_margin}")
-        if self.min_margin and self.subpixel > 1:
-            raise ConfigError("min_margin is not supported for sub-pixel logits")
         # paint borders re-decided on the image's brightness (refine_paint_borders): settings
         # set for the model's own classes on town frames by services/segtrain ride in its
         # metadata, and apply unless a head_map remaps those classes; {} turns it off
@@ -275,7 +273,7 @@ class OnnxSegmenter(Segmenter):
         are sub-pixel logits (metadata `subpixel`): labels at the input size, resized to
         out_size (nearest) when one is given. `score_at(ys, xs)` -> (C, N) gives the upsampled
         scores of the last head at label pixels (ys, xs) (for sub-pixel logits, those of the
-        pixel's own sub-grid; None when their labels were resized to out_size)."""
+        full-resolution pixel's own sub-grid)."""
         w, h = self.input_size
         small = image_rgb  # resized once, for the network and the refinement
         if small.shape[:2] != (h, w):
@@ -289,11 +287,10 @@ class OnnxSegmenter(Segmenter):
             scores = logits[0]
             if self.subpixel > 1:
                 arg = _subpixel_argmax(scores, self.subpixel)
+                scale = (arg.shape[0] / band[1], arg.shape[1] / band[0])
                 if band != arg.shape[::-1]:
                     arg = cv2.resize(arg, band, interpolation=cv2.INTER_NEAREST)
-                    score_at = None
-                else:
-                    score_at = partial(_subpixel_scores_at, scores, self.subpixel)
+                score_at = partial(_subpixel_scores_at, scores, self.subpixel, scale=scale)
             elif band == (2 * scores.shape[2], 2 * scores.shape[1]):
                 upsampled = UpsampledScores(scores)  # our model: only the mixed 2x2 blocks
                 arg, score_at = upsampled.labels, upsampled
@@ -609,8 +606,14 @@ def _scores_at(scores: np.ndarray, ys: np.ndarray, xs: np.ndarray) -> np.ndarray
     return scores[:, ys, xs]
 
 
-def _subpixel_scores_at(scores: np.ndarray, s: int, ys: np.ndarray, xs: np.ndarray):
-    """(C, N) scores of sub-pixel logits (C * s * s, h, w) at full-resolution pixels (ys, xs)."""
+def _subpixel_scores_at(scores: np.ndarray, s: int, ys: np.ndarray, xs: np.ndarray,
+                        scale: tuple[float, float] = (1.0, 1.0)):
+    """(C, N) scores of sub-pixel logits (C * s * s, h, w) at full-resolution pixels (ys, xs);
+    with `scale` (full-resolution rows, columns per label pixel), at label pixels of a nearest
+    resize of the full-resolution labels (as cv2.INTER_NEAREST picks: floor(y * scale))."""
+    if scale != (1.0, 1.0):
+        ys = np.minimum((ys * scale[0]).astype(np.int64), s * scores.shape[1] - 1)
+        xs = np.minimum((xs * scale[1]).astype(np.int64), s * scores.shape[2] - 1)
     sub = scores.reshape(-1, s * s, *scores.shape[1:])
     return sub[:, (ys % s) * s + xs % s, ys // s, xs // s]
 

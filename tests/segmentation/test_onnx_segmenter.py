@@ -2,6 +2,7 @@
 
 from functools import partial
 
+import cv2
 import numpy as np
 import pytest
 
@@ -119,8 +120,6 @@ def test_unsure_paint_becomes_unknown_and_confident_paint_stays():
 
 @needs_model
 def test_min_margin_drops_exactly_the_marking_pixels_the_model_is_unsure_of():
-    import cv2
-
     from tests.segmentation.test_refine import _road_with_lines
 
     image = _road_with_lines()
@@ -141,8 +140,6 @@ def test_min_margin_drops_exactly_the_marking_pixels_the_model_is_unsure_of():
 
 
 def test_upsampled_argmax_equals_the_resize_then_argmax(rng):
-    import cv2
-
     from common.segmentation import (
         UpsampledScores,
         _resize_channels,
@@ -264,6 +261,14 @@ def test_sub_pixel_logits_mirror_and_score_at_full_resolution(rng):
     ys, xs = rng.integers(0, 8, 50), rng.integers(0, 10, 50)
     np.testing.assert_array_equal(_subpixel_scores_at(unshuffled(full, 2), 2, ys, xs),
                                   full[:, ys, xs])
+    # and at the pixels of labels resized (nearest) to another size, those of the pixel picked
+    for size in ((7, 5), (25, 19)):  # (W, H)
+        resized = np.stack([cv2.resize(plane, size, interpolation=cv2.INTER_NEAREST)
+                            for plane in full])
+        ys, xs = np.divmod(np.arange(size[0] * size[1]), size[0])
+        got = _subpixel_scores_at(unshuffled(full, 2), 2, ys, xs,
+                                  scale=(8 / size[1], 10 / size[0]))
+        np.testing.assert_array_equal(got, resized[:, ys, xs])
 
 
 @needs_model
