@@ -187,3 +187,19 @@ def test_training_crops_are_windows_of_the_frames_or_the_whole_frame():
     left = int(xb[0, 0, 0, 0]) - top * 640  # x holds each pixel's flat index
     assert np.array_equal(xb, x[:, :, top:top + 224, left:left + 384])
     assert np.array_equal(yb, y[:, top:top + 224, left:left + 384])
+
+
+def test_streamed_held_out_halves_have_the_training_mix():
+    """A streamed run's held-out frames arrive in chunk order (chunks 0-2 of every 10 from
+    synth.py): its calibration and validation halves each get the training set's share."""
+    from services.segtrain.data import CHUNK_FRAMES, SYNTH_SHARE
+    from services.segtrain.train import STREAM_VAL_FRAMES, interleaved_halves
+
+    n = STREAM_VAL_FRAMES
+    synth = (np.arange(n) // CHUNK_FRAMES) % 10 < round(10 * SYNTH_SHARE)
+    order = interleaved_halves(n)
+    assert sorted(order) == list(range(n))
+    first, second = synth[order[:n // 2]], synth[order[n // 2:]]
+    assert first.mean() == pytest.approx(SYNTH_SHARE)
+    assert second.mean() == pytest.approx(SYNTH_SHARE)
+    assert synth[:n // 2].mean() > 0.5  # as they came: the first half was mostly synth.py's
