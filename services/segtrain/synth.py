@@ -15,7 +15,7 @@ import numpy as np
 from common.camera import CameraModel
 from common.classes import Cls
 from common.geometry import rot_z
-from services.segtrain.data import curb_face_gain, resize_labels
+from services.segtrain.data import curb_face_gain
 
 CELL_M = 0.05
 SUPER = 2
@@ -114,19 +114,36 @@ def _pose_on(route, i, rng):
     return float(xy[0]), float(xy[1]), yaw
 
 
+MAX_RANGE_M = 120.0
+
+
 class GroundMap:
-    """Per camera, once: every supersampled pixel's ground point in the vehicle frame."""
+    """Per camera, once: every supersampled pixel's ground point in the vehicle frame (for
+    the colours) and every pixel centre's (for the labels)."""
 
     def __init__(self, camera: CameraModel, supersample: int = SUPER):
         self.camera, self.ss = camera, supersample
         w, h, k = camera.width, camera.height, supersample
-        v, u = np.mgrid[0:h * k, 0:w * k]
-        self.uv = np.stack([(u.ravel() + 0.5) / k, (v.ravel() + 0.5) / k], axis=1)
-        ground_v = camera.ground_points(self.uv)
-        hit = np.isfinite(ground_v).all(axis=1)
-        self.dist = np.where(hit, np.hypot(ground_v[:, 0], ground_v[:, 1]), np.inf)
-        self.hit = hit & (self.dist < 120.0)
-        self.ground_v = np.where(self.hit[:, None], ground_v, 0.0)
+        self.uv, self.ground_v, self.hit, self.dist = _ground_at(camera, w, h, k)
+        # Labels are the class at each pixel's centre, as the simulator's renderer labels its
+        # frames (services/sim/render.py) and as the benchmark scores them. (Until 2026-11-26
+        # they were the majority of the 2x2 sub-samples with ties to the lower class: road over
+        # paint, so every line was labelled half a pixel thinner than drawn.)
+        centre = _ground_at(camera, w, h, 1) if k > 1 else (self.uv, self.ground_v, self.hit)
+        self.centre_v, self.centre_hit = centre[1], centre[2]
+
+
+def _ground_at(camera: CameraModel, w: int, h: int, k: int):
+    """(uv, ground points, hit, distance) of the centres of a k x k sub-pixel grid (k = 1: the
+    pixels' centres), in row-major order of the (h k, w k) grid; ground points beyond
+    MAX_RANGE_M or above the horizon are not hit (and 0)."""
+    v, u = np.mgrid[0:h * k, 0:w * k]
+    uv = np.stack([(u.ravel() + 0.5) / k, (v.ravel() + 0.5) / k], axis=1)
+    ground_v = camera.ground_points(uv)
+    hit = np.isfinite(ground_v).all(axis=1)
+    dist = np.where(hit, np.hypot(ground_v[:, 0], ground_v[:, 1]), np.inf)
+    hit &= dist < MAX_RANGE_M
+    return uv, np.where(hit[:, None], ground_v, 0.0), hit, dist
 
 
 def render(raster: WorldRaster, ground: GroundMap, pose, rng, curb_label=None):
@@ -142,13 +159,13 @@ def render(raster: WorldRaster, ground: GroundMap, pose, rng, curb_label=None):
     rgb = _shade(lab, fine, coarse, wear, ground, h, style, rng)
     k = ground.ss
     rgb = rgb.reshape(h * k, w * k, 3)
-    curb = 0 if curb_label is None or style["curb"] is None else curb_label  # else: verge
-    labels = np.where(lab == WALK, 0, np.where(lab > WALK, curb, lab))
-    labels = labels.reshape(h * k, w * k).astype(np.uint8)
     if k > 1:
         rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-        labels = resize_labels(labels, (w, h))
-    return _camera_effects(rgb, style, rng), labels
+        centre_lab = raster.sample(ground.centre_v @ R.T + [pose[0], pose[1]])[0]
+        lab = np.where(ground.centre_hit, centre_lab, 0)
+    curb = 0 if curb_label is None or style["curb"] is None else curb_label  # else: verge
+    labels = np.where(lab == WALK, 0, np.where(lab > WALK, curb, lab))
+    return _camera_effects(rgb, style, rng), labels.reshape(h, w).astype(np.uint8)
 
 
 def _style(rng) -> dict:

@@ -203,3 +203,23 @@ def test_streamed_held_out_halves_have_the_training_mix():
     assert first.mean() == pytest.approx(SYNTH_SHARE)
     assert second.mean() == pytest.approx(SYNTH_SHARE)
     assert synth[:n // 2].mean() > 0.5  # as they came: the first half was mostly synth.py's
+
+
+def test_synth_labels_are_the_class_at_each_pixel_centre_as_the_simulator_labels():
+    from services.segtrain.synth import GroundMap, WorldRaster, random_camera, random_pose, render
+
+    world = load_world("town:0.6", 4)
+    rng = np.random.default_rng(3)
+    raster, camera = WorldRaster(world, rng), random_camera(rng)
+    fine, centre = GroundMap(camera, 2), GroundMap(camera, 1)
+    paint_px = 0
+    for _ in range(3):
+        pose = random_pose(world, rng)
+        seed = int(rng.integers(1 << 30))
+        _, labels = render(raster, fine, pose, np.random.default_rng(seed))
+        _, truth = render(raster, centre, pose, np.random.default_rng(seed))
+        # 2x2 supersampled colours, labels sampled where the simulator samples them: a
+        # majority of the sub-samples would label lines half a pixel thinner than drawn
+        np.testing.assert_array_equal(labels, truth)
+        paint_px += int((labels >= Cls.LANE_LINE).sum())
+    assert paint_px > 500
