@@ -454,15 +454,20 @@ class FrameRenderer:
         if self.rng.random() < self.look.blur_prob:
             if self.rng.random() < 0.5:
                 rgb = cv2.GaussianBlur(rgb, (0, 0), float(self.rng.uniform(0.6, 1.6)))
-            else:  # motion blur: a short line kernel, mostly vertical (pitching) or horizontal
-                n = int(self.rng.integers(3, 8))
-                k = np.zeros((n, n), np.float32)
-                k[n // 2, :] = 1.0 / n
-                if self.rng.random() < 0.5:
-                    k = k.T.copy()
-                rgb = cv2.filter2D(rgb, -1, k)
+            else:
+                rgb = cv2.filter2D(rgb, -1, motion_kernel(self.rng))
         rgb = cv2.add(rgb, self.noise[int(self.rng.integers(len(self.noise)))])
         return cv2.LUT(np.clip(rgb, 0, 255, out=rgb).astype(np.uint8), self.tone)
+
+
+def motion_kernel(rng) -> np.ndarray:
+    """A motion blur: a line kernel of 3, 5 or 7 taps, horizontal or vertical (pitching). Odd
+    lengths only: cv2.filter2D anchors a kernel at its middle tap, so an even one (until
+    2026-11-26: 4 or 6 taps) moved the image half a pixel against its labels."""
+    n = 2 * int(rng.integers(1, 4)) + 1
+    k = np.zeros((n, n), np.float32)
+    k[n // 2, :] = 1.0 / n
+    return k.T.copy() if rng.random() < 0.5 else k
 
 
 def _ring(mask: np.ndarray, width_cells: float, coarse: int = 1) -> np.ndarray:

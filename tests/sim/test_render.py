@@ -9,7 +9,7 @@ from common.camera import build_ipm_lookup, camera_from_config
 from common.classes import Cls
 from common.config import CameraConfig
 from common.world import Marking, World
-from services.sim.render import FrameRenderer, LabelRenderer, Vehicle
+from services.sim.render import FrameRenderer, LabelRenderer, Vehicle, motion_kernel
 
 POSE = np.array([100.0, 50.0, 0.3])
 
@@ -153,3 +153,18 @@ def test_raised_island_hides_the_road_behind_it_and_shows_a_curb_face(camera):
     u0 = camera.width // 2
     assert lab[v_face, u0] == 0 and lab[v_top, u0] == 0
     assert grey[v_face, u0 - 3:u0 + 4].mean() < 0.8 * grey[v_top, u0 - 3:u0 + 4].mean()
+
+
+def test_motion_blur_keeps_the_image_where_its_labels_are():
+    import cv2
+
+    image = np.zeros((21, 21), np.float32)
+    image[10, 10] = 1.0
+    rng = np.random.default_rng(0)
+    for _ in range(40):  # every length and both directions the looks draw
+        blurred = cv2.filter2D(image, -1, motion_kernel(rng))
+        ys, xs = np.nonzero(blurred)
+        w = blurred[ys, xs]
+        assert blurred.sum() == pytest.approx(1.0)
+        assert np.average(ys, weights=w) == pytest.approx(10.0)
+        assert np.average(xs, weights=w) == pytest.approx(10.0)
