@@ -88,7 +88,7 @@ def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
     them; rendering stops at max_frames or when budget_s is spent (whichever comes first)."""
     cache_dir = cache_dir or Path(tempfile.gettempdir()) / "roadmap-segtrain"
     # the budget is in the key: a set cut short by a smaller budget is not reused for a larger
-    path = cache_dir / (f"towns-v10-s{seed}-{input_size[0]}x{input_size[1]}-n{max_frames}"
+    path = cache_dir / (f"towns-v11-s{seed}-{input_size[0]}x{input_size[1]}-n{max_frames}"
                         f"-b{round(budget_s)}-t{round(100 * turn_prob)}"
                         f"{_share_key(synth_share)}.npz")
     if cache and path.is_file():
