@@ -129,8 +129,10 @@ class GroundMap:
         # frames (services/sim/render.py) and as the benchmark scores them. (Until 2026-11-26
         # they were the majority of the 2x2 sub-samples with ties to the lower class: road over
         # paint, so every line was labelled half a pixel thinner than drawn.)
-        centre = _ground_at(camera, w, h, 1) if k > 1 else (self.uv, self.ground_v, self.hit)
-        self.centre_v, self.centre_hit = centre[1], centre[2]
+        if k > 1:
+            _, self.centre_v, self.centre_hit, _ = _ground_at(camera, w, h, 1)
+        else:
+            self.centre_v, self.centre_hit = self.ground_v, self.hit
 
 
 def _ground_at(camera: CameraModel, w: int, h: int, k: int):
