@@ -2,6 +2,7 @@
 label images invert through the IPM table; RGB frames are seeded, reproducible and fast enough
 to be worth benchmarking (timing lives in bench/bench_render.py)."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -156,8 +157,6 @@ def test_raised_island_hides_the_road_behind_it_and_shows_a_curb_face(camera):
 
 
 def test_motion_blur_keeps_the_image_where_its_labels_are():
-    import cv2
-
     image = np.zeros((21, 21), np.float32)
     image[10, 10] = 1.0
     rng = np.random.default_rng(0)
