@@ -6,6 +6,7 @@ Every kept frame is resized to the model's input size exactly as the runtime doe
 and its true labels area-resized per class (argmax of the class coverage), so thin paint is
 neither lost nor fattened."""
 
+import dataclasses
 import logging
 import tempfile
 import time
@@ -14,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from common.classes import NUM_CLASSES
+from common.classes import NUM_CLASSES, Cls
 from common.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -88,7 +89,7 @@ def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
     them; rendering stops at max_frames or when budget_s is spent (whichever comes first)."""
     cache_dir = cache_dir or Path(tempfile.gettempdir()) / "roadmap-segtrain"
     # the budget is in the key: a set cut short by a smaller budget is not reused for a larger
-    path = cache_dir / (f"towns-v11-s{seed}-{input_size[0]}x{input_size[1]}-n{max_frames}"
+    path = cache_dir / (f"towns-v13-s{seed}-{input_size[0]}x{input_size[1]}-n{max_frames}"
                         f"-b{round(budget_s)}-t{round(100 * turn_prob)}"
                         f"{_share_key(synth_share)}.npz")
     if cache and path.is_file():
@@ -321,10 +322,6 @@ def random_cars(pose, rng) -> list:
 def thinned(world, rng):
     """The world with a random share of its paint removed (labels and looks alike), so that road
     edges without edge lines, and lanes without some markings, occur as in real maps."""
-    import dataclasses
-
-    from common.classes import Cls
-
     p_line, p_other = rng.uniform(0.05, 0.35), rng.uniform(0.0, 0.3)
     keep = [m for m in world.markings
             if m.cls == Cls.ROAD or rng.random() >= (p_line if m.cls == Cls.LANE_LINE else p_other)]
@@ -338,10 +335,6 @@ def restyled(world, rng):
     - lane-line widths jittered, and thick (0.2-0.3 m) solid/dashed lines in patches (German
       'breite Strichmarkierung' near junctions; 0.25 m in Lanelet2 maps).
     Strip polygons (roads, lines, dashes) are re-stripped about their centre lines."""
-    import dataclasses
-
-    from common.classes import Cls
-
     p_no_edge = rng.uniform(0.4, 1.0)
     shoulder_cut = rng.uniform(0.0, 0.55) if rng.random() < 0.75 else 0.0
     p_thick = rng.uniform(0.1, 0.6) if rng.random() < 0.7 else 0.0
@@ -369,6 +362,131 @@ def restyled(world, rng):
     return dataclasses.replace(world, markings=out)
 
 
+def junction_lines(world, rng):
+    """Dashed lane lines through the towns' intersections, as real maps paint them and the
+    towns (paint stops at the junction box) never do: lines that run on straight across (the
+    priority road's edge and lane lines over a side road's mouth) and curved turn guides.
+    Seen from an approach or a turn they cross the view like stop lines; only their dashes and
+    width tell. On the held-out Karlsruhe frames such lines (thin dashes across junctions,
+    thick 0.25 m dashes seen obliquely while turning) were the lane line called stop line or
+    ground sign: 0.10 of that world's lane-line IoU."""
+    from services.sim import paint
+
+    p_junction = rng.uniform(0.3, 0.9) if rng.random() < 0.8 else 0.0
+    if p_junction == 0.0:
+        return world
+    boxes = [m.polygon_xy_m.astype(np.float32) for m in world.markings
+             if m.cls == Cls.ROAD and m.kind == "intersection"]
+    ends = _line_ends(world)
+    out = list(world.markings)
+    for box in boxes:
+        if rng.random() >= p_junction:
+            continue
+        centre = box.mean(axis=0)
+        radius = float(np.linalg.norm(box - centre, axis=1).max())
+        near = [e for e in ends if np.linalg.norm(e[0] - centre) < radius + 12.0]
+        width = rng.uniform(0.2, 0.3) if rng.random() < 0.5 else rng.uniform(0.10, 0.16)
+        dash = rng.uniform(1.0, 3.5)
+        gap = dash * rng.uniform(0.5, 2.0)
+        drawn: list = []
+        for path in _straight_paths(box, near) + _turn_paths(box, near, rng):
+            if any(_same_path(path, q) for q in drawn):
+                continue
+            drawn.append(path)
+            out += paint.line_markings(path, "dashed", width, dash, gap, rng.uniform(0, gap))
+    return dataclasses.replace(world, markings=out)
+
+
+def _line_ends(world) -> list:
+    """(end point, outward unit direction) of every lane-line strip (each dash has two)."""
+    ends = []
+    for m in world.markings:
+        if m.cls != Cls.LANE_LINE:
+            continue
+        half = _strip_halves(m.polygon_xy_m)
+        if half is None or len(half[0]) < 2:
+            continue
+        c = half[0]
+        for p, q in ((c[0], c[1]), (c[-1], c[-2])):
+            d = p - q
+            n = np.linalg.norm(d)
+            if n > 1e-6:
+                ends.append((p, d / n))
+    return ends
+
+
+def _inside(box, pts) -> np.ndarray:
+    """Which points lie in the convex polygon box (an intersection's hull), either winding."""
+    edge = np.roll(box, -1, axis=0) - box
+    rel = pts[:, None, :] - box[None]
+    cross = edge[None, :, 0] * rel[..., 1] - edge[None, :, 1] * rel[..., 0]
+    return (cross >= 0).all(axis=1) | (cross <= 0).all(axis=1)
+
+
+def _ray_span(box, p, d, reach=40.0):
+    """(t_in, t_out) of the ray p + t d inside the box (sampled every 0.1 m), or None."""
+    t = np.arange(0.0, reach, 0.1)
+    inside = _inside(box, p + t[:, None] * d)
+    if not inside.any():
+        return None
+    k = np.flatnonzero(inside)
+    return float(t[k[0]]), float(t[k[-1]])
+
+
+def _straight_paths(box, ends) -> list:
+    """A line whose ray crosses the box and meets a line on the far side running on."""
+    paths = []
+    for p, d in ends:
+        span = _ray_span(box, p, d)
+        if span is None or span[0] > 12.0 or span[1] - span[0] < 3.0:
+            continue
+        for q, e in ends:
+            along = float(np.dot(q - p, d))
+            side = abs(float(np.cross(d, q - p)))
+            if float(np.dot(d, e)) < -0.97 and along > span[1] - 1.0 and side < 0.6:
+                paths.append(np.stack([p + span[0] * d, p + span[1] * d]))
+                break
+    return paths
+
+
+def _turn_paths(box, ends, rng) -> list:
+    """1-3 quadratic curves, each joining two lines that meet the box at 60-120 deg."""
+    entries = []
+    for p, d in ends:
+        span = _ray_span(box, p, d, reach=14.0)
+        if span is not None and span[0] < 12.0:
+            entries.append((p + span[0] * d, d))
+    curves = []
+    for i in range(len(entries)):
+        for j in range(i + 1, len(entries)):
+            (a, da), (b, db) = entries[i], entries[j]
+            if abs(float(np.dot(da, db))) > 0.5:
+                continue
+            # the rays' crossing a + s da = b + u db, both ahead
+            s, u = np.linalg.solve(np.stack([da, -db], axis=1), b - a)
+            if not (1.0 < s < 25.0 and 1.0 < u < 25.0):
+                continue
+            w = np.linspace(0.0, 1.0, 24)[:, None]
+            curve = (1 - w) ** 2 * a + 2 * (1 - w) * w * (a + s * da) + w ** 2 * b
+            if _inside(box, curve).mean() > 0.8:
+                curves.append(curve)
+    order = rng.permutation(len(curves))[:int(rng.integers(1, 4))]
+    return [curves[k] for k in order]
+
+
+def _same_path(a, b, tol=0.6) -> bool:
+    """Whether path a runs within tol of path b along all of a (either drawn twice)."""
+    from services.sim import paint
+
+    for x, y in ((a, b), (b, a)):
+        s = paint.arc_length(y)
+        dense = np.stack([np.interp(np.linspace(0, s[-1], 50), s, y[:, k]) for k in (0, 1)], 1)
+        d = np.linalg.norm(x[::max(len(x) // 8, 1), None] - dense[None], axis=2).min(axis=1)
+        if (d < tol).all():
+            return True
+    return False
+
+
 def _strip_halves(poly):
     """(centre line (N, 2), left offsets (N, 2)) of a polygon made by services.sim.paint.strip
     (left side forward, right side backward), or None for other shapes."""
@@ -389,8 +507,9 @@ def _strip_from(centre, off):
 
 
 def town_world(seed: int, rng):
-    """A training town (0.6-1.5 km) with wide roads, and thinned and restyled paint."""
+    """A training town (0.6-1.5 km) with wide roads, lines through its junctions, and thinned
+    and restyled paint."""
     from services.sim.town import build_town
 
     world = build_town(round(rng.uniform(0.6, 1.5), 2), seed, LANE_MIX, MEDIAN_PROB)
-    return thinned(restyled(world, rng), rng)
+    return thinned(junction_lines(restyled(world, rng), rng), rng)

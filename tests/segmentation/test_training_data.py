@@ -7,7 +7,7 @@ import pytest
 from common.classes import Cls
 from common.errors import ConfigError
 from common.segmentation import argmax_channels
-from services.segtrain.data import _strip_halves, restyled
+from services.segtrain.data import _inside, _strip_halves, junction_lines, restyled
 from services.sim.worlds import load_world
 
 
@@ -36,6 +36,23 @@ def test_restyled_town_has_thick_lines_fewer_edge_lines_and_narrower_roads():
         others = lambda w: sum(m.cls not in (Cls.LANE_LINE, Cls.ROAD) for m in w.markings)  # noqa: E731
         assert others(new) == others(world)  # stop lines, crossings, signs untouched
     assert thick_seen and narrower_seen
+
+
+def test_junction_lines_are_dashed_lane_lines_inside_the_intersections():
+    world = load_world("town:0.8", 3)
+    boxes = [m.polygon_xy_m for m in world.markings if m.kind == "intersection"]
+    added = []
+    for seed in range(4):
+        new = junction_lines(world, np.random.default_rng(seed))
+        assert new.markings[:len(world.markings)] == world.markings  # nothing else touched
+        added += new.markings[len(world.markings):]
+    assert len(added) > 10
+    for m in added:
+        assert m.cls == Cls.LANE_LINE and m.kind == "dashed"
+        centre = m.polygon_xy_m.mean(axis=0)[None]
+        assert any(_inside(box, centre)[0] for box in boxes)  # in a junction, not on a road
+        length = np.linalg.norm(np.ptp(m.polygon_xy_m, axis=0))
+        assert length < 4.0  # dashes of at most 3.5 m, not solid lines
 
 
 def test_argmax_channels_matches_numpy_including_ties(rng):
