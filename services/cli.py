@@ -159,6 +159,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="after training, fit the learned paint-border classifier (as "
                         "--border-only does) on N town frames of --border-seed, all rendered "
                         "(2880 on 2 cores: about 9.5 more minutes); default 0: none")
+    p.add_argument("--no-flip-average", dest="flip_average", action="store_false",
+                   help="leave the export's metadata `flip_average` off (default on: the "
+                        "runtime averages the network's logits of the image and of its mirror "
+                        "image, and the border classifier is fitted on those averaged logits)")
     p.add_argument("--border-seed", type=int, default=None,
                    help="the towns of the border classifier's frames (default: --seed + 31)")
     p.add_argument("--reexport", default=None, metavar="MODEL",

@@ -186,6 +186,10 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
 
 def _finish(args, out: Path, result: dict, t_start: float) -> int:
     minutes = float(args.minutes)
+    # flip averaging is on before the border classifier is fitted, so that it learns the
+    # borders of the averaged logits the runtime will decide (as the packaged file was made)
+    set_metadata(out / "roadseg.onnx", flip_average=bool(args.flip_average))
+    result["flip_average"] = bool(args.flip_average)
     if args.border_frames:  # all its frames rendered: no time budget
         result["border"] = fit_border_step(out / "roadseg.onnx", seed=args.border_seed,
                                            frames=args.border_frames, args=args,
@@ -209,6 +213,7 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
         + ([f"--mirror-consistency {args.mirror_consistency:g}"]
            if args.mirror_consistency else [])
         + ([f"--crop {args.crop}"] if args.crop != DEFAULT_CROP else [])
+        + ([] if args.flip_average else ["--no-flip-average"])
         + ([f"--border-frames {args.border_frames}"] if args.border_frames else [])
         + ([f"--border-seed {args.border_seed}"]
            if args.border_frames and args.border_seed != args.seed + BORDER_SEED_OFFSET
@@ -810,6 +815,13 @@ def verify_onnx(model, path: Path, x_u8) -> tuple[float, float]:
     return max_diff, agreement
 
 
+def _flip_text(result: dict) -> str:
+    if result.get("flip_average"):
+        return ("on (metadata `flip_average`): the runtime averages the network's logits of the "
+                "image and of its mirror image (mirrored back), twice the network's time.")
+    return "off (`--no-flip-average`)."
+
+
 def model_card(result: dict) -> str:
     w, h = INPUT_SIZE
     share = result.get("synth_share", seg_data.SYNTH_SHARE)
@@ -824,6 +836,7 @@ def model_card(result: dict) -> str:
   (below), then resizes the labels to the frame size (nearest). The
   same settings are stored in the model's metadata (`roadmap.segmentation`), so
   `OnnxSegmenter()` needs no arguments.
+- **Flip averaging**: {_flip_text(result)}
 - **Network**: RoadSegNet (services/segtrain/net.py): 4x4 stride-2 stem on the full-resolution
   image, depthwise-separable encoder-decoder with stages at 1/4, 1/8, 1/16 (dilated context),
   U-Net skips back to 1/2, logits at 1/2 (upsampled by the runtime);

@@ -209,3 +209,31 @@ def test_a_training_run_refuses_its_own_seed_for_the_border_classifier(tmp_path,
                  "--border-seed", "4"]) == 1
     assert "another seed" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # nothing rendered, trained or written
+
+
+@pytest.mark.parametrize("flag, expected", [([], True), (["--no-flip-average"], False)])
+def test_a_training_run_sets_flip_averaging_before_its_border_classifier(tmp_path, flag, expected):
+    """The end of a training run (`_finish`) switches flip averaging on in the export's metadata
+    (unless --no-flip-average), before any border fit, and writes it to the log, card and the
+    command it reports, so that one command gives the packaged file's settings."""
+    pytest.importorskip("onnx")
+    import json
+
+    from services.cli import build_parser
+    from services.segtrain.train import _finish, _metadata, set_metadata
+
+    model = tmp_path / "roadseg.onnx"
+    model.write_bytes(DEFAULT_MODEL.read_bytes())
+    set_metadata(model, flip_average=not expected)
+    args = build_parser().parse_args(["train-seg", "--out", str(tmp_path), *flag])
+    args.turn_prob, args.synth_share, args.border_seed = 0.2, 0.3, 31
+    result = {"frames": 24, "model_bytes": model.stat().st_size, "params": 26011, "steps": 1,
+              "train_s": 1.0, "class_weights": [1.0] * 7, "onnx_max_abs_diff": 0.0,
+              "onnx_argmax_agreement": 1.0, "val_iou_town": {}, "init": None}
+    assert _finish(args, tmp_path, result, 0.0) == 0
+    assert _metadata(model)["flip_average"] is expected
+    log = json.loads((tmp_path / "train_log.json").read_text())
+    assert log["flip_average"] is expected
+    assert ("--no-flip-average" in log["command"]) is not expected
+    card = (tmp_path / "MODEL_CARD.md").read_text()
+    assert ("**Flip averaging**: on" in card) is expected
