@@ -384,12 +384,14 @@ def junction_lines(world, rng):
             continue
         centre = box.mean(axis=0)
         radius = float(np.linalg.norm(box - centre, axis=1).max())
-        near = [e for e in ends if np.linalg.norm(e[0] - centre) < radius + 12.0]
+        # (end, direction, its ray's span in the box): each ray traced once for both kinds
+        near = [(p, d, _ray_span(box, p, d)) for p, d in ends
+                if np.linalg.norm(p - centre) < radius + 12.0]
         width = rng.uniform(0.2, 0.3) if rng.random() < 0.5 else rng.uniform(0.10, 0.16)
         dash = rng.uniform(1.0, 3.5)
         gap = dash * rng.uniform(0.5, 2.0)
         drawn: list = []
-        for path in _straight_paths(box, near) + _turn_paths(box, near, rng):
+        for path in _straight_paths(near) + _turn_paths(box, near, rng):
             if any(_same_path(path, q) for q in drawn):
                 continue
             drawn.append(path)
@@ -423,9 +425,9 @@ def _inside(box, pts) -> np.ndarray:
     return (cross >= 0).all(axis=1) | (cross <= 0).all(axis=1)
 
 
-def _ray_span(box, p, d, reach=40.0):
-    """(t_in, t_out) of the ray p + t d inside the box (sampled every 0.1 m), or None."""
-    t = np.arange(0.0, reach, 0.1)
+def _ray_span(box, p, d):
+    """(t_in, t_out) of the ray p + t d inside the box (sampled every 0.1 m to 40 m), or None."""
+    t = np.arange(0.0, 40.0, 0.1)
     inside = _inside(box, p + t[:, None] * d)
     if not inside.any():
         return None
@@ -433,16 +435,16 @@ def _ray_span(box, p, d, reach=40.0):
     return float(t[k[0]]), float(t[k[-1]])
 
 
-def _straight_paths(box, ends) -> list:
-    """A line whose ray crosses the box and meets a line on the far side running on."""
+def _straight_paths(ends) -> list:
+    """A line whose ray crosses the box and meets a line on the far side running on; ends are
+    (point, direction, span of its ray in the box or None)."""
     paths = []
-    for p, d in ends:
-        span = _ray_span(box, p, d)
+    for p, d, span in ends:
         if span is None or span[0] > 12.0 or span[1] - span[0] < 3.0:
             continue
-        for q, e in ends:
+        for q, e, _ in ends:
             along = float(np.dot(q - p, d))
-            side = abs(float(np.cross(d, q - p)))
+            side = abs(float(d[0] * (q - p)[1] - d[1] * (q - p)[0]))
             if float(np.dot(d, e)) < -0.97 and along > span[1] - 1.0 and side < 0.6:
                 paths.append(np.stack([p + span[0] * d, p + span[1] * d]))
                 break
@@ -452,8 +454,7 @@ def _straight_paths(box, ends) -> list:
 def _turn_paths(box, ends, rng) -> list:
     """1-3 quadratic curves, each joining two lines that meet the box at 60-120 deg."""
     entries = []
-    for p, d in ends:
-        span = _ray_span(box, p, d, reach=14.0)
+    for p, d, span in ends:
         if span is not None and span[0] < 12.0:
             entries.append((p + span[0] * d, d))
     curves = []
