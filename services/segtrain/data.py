@@ -6,8 +6,10 @@ Every kept frame is resized to the model's input size exactly as the runtime doe
 and its true labels area-resized per class (argmax of the class coverage), so thin paint is
 neither lost nor fattened."""
 
+import contextlib
 import dataclasses
 import logging
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -131,9 +133,23 @@ def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
     permute_rows(frames, order)
     permute_rows(labels, order)
     if cache:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(path, frames=frames, labels=labels)
+        _save_cache(path, frames, labels)
     return frames, labels
+
+
+def _save_cache(path: Path, frames: np.ndarray, labels: np.ndarray) -> None:
+    """Write the rendered set to `path` whole or not at all: a full disk (a set is 5-6 GB)
+    costs the next run its cache, never this run its frames or a truncated file at `path`."""
+    tmp = path.with_name(path.name + ".part")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "wb") as f:
+            np.savez(f, frames=frames, labels=labels)
+        os.replace(tmp, path)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        logger.warning("training frames not cached (%s); going on without the cache", exc)
 
 
 def permute_rows(a: np.ndarray, order: np.ndarray) -> None:

@@ -7,7 +7,7 @@ import pytest
 from common.classes import Cls
 from common.errors import ConfigError
 from common.segmentation import argmax_channels
-from services.segtrain.data import _inside, _strip_halves, junction_lines, restyled
+from services.segtrain.data import _inside, _save_cache, _strip_halves, junction_lines, restyled
 from services.sim.worlds import load_world
 
 
@@ -240,3 +240,20 @@ def test_synth_labels_are_the_class_at_each_pixel_centre_as_the_simulator_labels
         np.testing.assert_array_equal(labels, truth)
         paint_px += int((labels >= Cls.LANE_LINE).sum())
     assert paint_px > 500
+
+
+def test_frame_cache_is_written_whole_or_not_at_all(tmp_path, caplog):
+    frames = np.zeros((2, 4, 6, 3), np.uint8)
+    labels = np.ones((2, 4, 6), np.uint8)
+    good = tmp_path / "sets" / "a.npz"
+    _save_cache(good, frames, labels)
+    with np.load(good) as z:
+        assert (z["labels"] == labels).all() and z["frames"].shape == frames.shape
+    assert not list(good.parent.glob("*.part"))
+
+    blocker = tmp_path / "not-a-dir"
+    blocker.write_text("")  # the cache folder cannot be made: an OSError, as a full disk
+    with caplog.at_level("WARNING"):
+        _save_cache(blocker / "b.npz", frames, labels)  # the run goes on
+    assert "not cached" in caplog.text
+    assert blocker.read_text() == ""
