@@ -125,6 +125,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--minutes", type=float, default=45.0,
                    help="wall-clock budget of rendering + training (default 45)")
     p.add_argument("--frames", type=int, default=6000, help="training frames to render")
+    p.add_argument("--steps", type=int, default=None, metavar="N",
+                   help="train exactly N steps (the schedule spread over steps) in place of "
+                        "--minutes' budget; without --render-minutes every frame is rendered: "
+                        "a run that does not depend on the machine's speed")
     p.add_argument("--render-minutes", type=float, default=None,
                    help="rendering budget (default: 20 %% of --minutes, at most 10)")
     p.add_argument("--workers", type=int, default=1, help="processes rendering frames")

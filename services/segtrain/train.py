@@ -59,10 +59,19 @@ def train_command(args, cfg) -> int:
         return 0
     if args.border_only:
         return _border_only(args, out)
+    if args.steps is not None and args.steps < 1:
+        raise ConfigError(f"--steps {args.steps}: at least 1")
     if args.stream:
+        if args.steps is not None:
+            raise ConfigError("--steps with --stream: streamed frames arrive at the machine's "
+                              "pace, so the run would not be reproducible; leave one out")
         return _train_streamed(args, out, t_start)
-    render_budget_s = (min(0.2 * minutes * 60.0, 10 * 60.0) if args.render_minutes is None
-                       else 60.0 * args.render_minutes)
+    if args.render_minutes is not None:
+        render_budget_s = 60.0 * args.render_minutes
+    elif args.steps is not None:  # a run by steps renders all its frames: no time budget
+        render_budget_s = 24 * 3600.0
+    else:
+        render_budget_s = min(0.2 * minutes * 60.0, 10 * 60.0)
     frames, labels = seg_data.training_set(seed=args.seed, input_size=INPUT_SIZE,
                                            budget_s=render_budget_s, max_frames=args.frames,
                                            workers=args.workers, cache=not args.no_cache,
@@ -84,6 +93,7 @@ def train_command(args, cfg) -> int:
     # with a warm cache trains exactly as long as the first run did
     train_s = max(minutes * 60.0 - max(render_s, render_budget_s) - 60.0, 60.0)
     result = train_and_export(frames, labels, out, seed=args.seed, train_s=train_s,
+                              steps=args.steps,
                               device=args.device, batch=args.batch, init=args.init,
                               iou_loss=args.iou_loss, arch=args.arch,
                               hard_pixels=args.hard_pixels, mirror=args.mirror_consistency,
@@ -198,8 +208,9 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
     result["turn_prob"] = args.turn_prob
     result["synth_share"] = args.synth_share
     result["command"] = " ".join(
-        ["roadmap train-seg --out DIR", f"--seed {args.seed}", f"--minutes {minutes:g}",
-         f"--frames {args.frames}", f"--workers {args.workers}"]
+        ["roadmap train-seg --out DIR", f"--seed {args.seed}"]
+        + ([f"--minutes {minutes:g}"] if args.steps is None else [f"--steps {args.steps}"])
+        + [f"--frames {args.frames}", f"--workers {args.workers}"]
         + ([f"--render-minutes {args.render_minutes:g}"] if args.render_minutes else [])
         + (["--stream"] if args.stream else [])
         + [f"--device {args.device}", f"--batch {args.batch}"]
@@ -235,11 +246,13 @@ def class_weights(labels: np.ndarray) -> np.ndarray:
 
 
 def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
+                     steps: int | None = None,
                      device: str = "cpu", batch: int = BATCH, init: str | None = None,
                      iou_loss: float = 0.0, arch: str = "s", more=None,
                      capacity: int = 0, crop_hw: tuple[int, int] = CROP_HW,
                      hard_pixels: float = 1.0, mirror: float = 0.0) -> dict:
-    """Train RoadSegNet of size `arch` (archs.ARCHS) for train_s seconds on `device` (cpu: 2
+    """Train RoadSegNet of size `arch` (archs.ARCHS) for train_s seconds (or, with `steps`,
+    for exactly that many steps, the schedule spread over them) on `device` (cpu: 2
     threads; cuda: the frames live on the GPU), from scratch or, with `init`, from a trained
     model (fine-tuning at LR_FINETUNE; an exported ONNX file's folded batch norms are kept
     frozen), on class-weighted cross-entropy (over the `hard_pixels` share of each batch's
@@ -288,8 +301,9 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
     if frozen_norms:
         freeze_batch_norm(model)
     t0, step, losses = time.perf_counter(), 0, []
-    while (elapsed := time.perf_counter() - t0) < train_s:
-        frac = elapsed / train_s
+    while ((elapsed := time.perf_counter() - t0) < train_s if steps is None
+           else step < steps):
+        frac = elapsed / train_s if steps is None else step / steps
         for g in opt.param_groups:
             g["lr"] = _lr(frac, lr_max)
         if more is not None and step % 20 == 0 and n_loaded < cap and (got := more()):

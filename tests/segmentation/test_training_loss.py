@@ -1,6 +1,8 @@
 """The training loss's soft-Jaccard term, hard-pixel cross-entropy and mirror consistency (needs
 the optional torch extra: `.[train]`)."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -106,4 +108,31 @@ def test_mirror_consistency_needs_an_even_batch(tmp_path, capsys):
                  "--batch", "7"]) == 1
     assert "needs a weight >= 0 and an even --batch" in capsys.readouterr().err
     assert main(["train-seg", "--out", str(tmp_path), "--mirror-consistency", "-1"]) == 1
+    assert not any(tmp_path.iterdir())  # nothing rendered, nothing written
+
+
+def test_a_run_by_steps_is_the_same_run_twice(tmp_path):
+    """--steps: every frame rendered, the schedule spread over steps, not the machine's
+    seconds: the same command gives the same file (here 48 frames, 3 steps)."""
+    from services.cli import main
+
+    outs = []
+    for name in ("a", "b"):
+        out = tmp_path / name
+        assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "48",
+                     "--steps", "3", "--batch", "2", "--workers", "1", "--no-cache"]) == 0
+        outs.append(out)
+    log = json.loads((outs[0] / "train_log.json").read_text())
+    assert log["steps"] == 3 and log["frames"] == 48
+    assert "--steps 3" in log["command"] and "--minutes" not in log["command"]
+    assert (outs[0] / "roadseg.onnx").read_bytes() == (outs[1] / "roadseg.onnx").read_bytes()
+
+
+def test_bad_steps_are_refused_before_rendering(tmp_path, capsys):
+    from services.cli import main
+
+    assert main(["train-seg", "--out", str(tmp_path), "--steps", "0"]) == 1
+    assert "--steps 0: at least 1" in capsys.readouterr().err
+    assert main(["train-seg", "--out", str(tmp_path), "--steps", "9", "--stream"]) == 1
+    assert "would not be reproducible" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # nothing rendered, nothing written
