@@ -33,6 +33,7 @@ LR_FINETUNE = 2e-3  # peak learning rate when starting from a trained model (--i
 THREADS = 2
 DEFAULT_CROP = f"{CROP_HW[1]}x{CROP_HW[0]}"
 TRIM_EVERY = 50  # steps between heap trims (_heap_trimmer)
+NO_RENDER_BUDGET_S = 24 * 3600.0  # "render every frame asked for": no time budget
 BORDER_SEED_OFFSET = 31  # --border-seed's default: --seed + 31, towns the network never saw
 
 
@@ -68,8 +69,8 @@ def train_command(args, cfg) -> int:
         return _train_streamed(args, out, t_start)
     if args.render_minutes is not None:
         render_budget_s = 60.0 * args.render_minutes
-    elif args.steps is not None:  # a run by steps renders all its frames: no time budget
-        render_budget_s = 24 * 3600.0
+    elif args.steps is not None:  # a run by steps renders all its frames
+        render_budget_s = NO_RENDER_BUDGET_S
     else:
         render_budget_s = min(0.2 * minutes * 60.0, 10 * 60.0)
     frames, labels = seg_data.training_set(seed=args.seed, input_size=INPUT_SIZE,
@@ -111,7 +112,7 @@ def _border_only(args, out: Path) -> int:
     if trained_seed == args.seed:
         raise ConfigError(f"--border-only: {args.border_only} was trained on the towns of seed "
                           f"{args.seed}; fit its border classifier on another --seed")
-    budget_s = 60.0 * args.render_minutes if args.render_minutes else 24 * 3600.0
+    budget_s = 60.0 * args.render_minutes if args.render_minutes else NO_RENDER_BUDGET_S
     log = fit_border_step(args.border_only, seed=args.seed, frames=args.frames, args=args,
                           budget_s=budget_s)
     (out / "border_log.json").write_text(json.dumps(log, indent=2))
@@ -203,7 +204,7 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
     if args.border_frames:  # all its frames rendered: no time budget
         result["border"] = fit_border_step(out / "roadseg.onnx", seed=args.border_seed,
                                            frames=args.border_frames, args=args,
-                                           budget_s=24 * 3600.0)
+                                           budget_s=NO_RENDER_BUDGET_S)
     result["minutes"] = minutes
     result["turn_prob"] = args.turn_prob
     result["synth_share"] = args.synth_share
@@ -301,9 +302,11 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
     if frozen_norms:
         freeze_batch_norm(model)
     t0, step, losses = time.perf_counter(), 0, []
-    while ((elapsed := time.perf_counter() - t0) < train_s if steps is None
-           else step < steps):
+    while True:
+        elapsed = time.perf_counter() - t0  # logged by steps too
         frac = elapsed / train_s if steps is None else step / steps
+        if frac >= 1.0:
+            break
         for g in opt.param_groups:
             g["lr"] = _lr(frac, lr_max)
         if more is not None and step % 20 == 0 and n_loaded < cap and (got := more()):

@@ -113,18 +113,19 @@ def test_mirror_consistency_needs_an_even_batch(tmp_path, capsys):
 
 def test_a_run_by_steps_is_the_same_run_twice(tmp_path):
     """--steps: every frame rendered, the schedule spread over steps, not the machine's
-    seconds: the same command gives the same file (here 48 frames, 3 steps)."""
+    seconds: the same command gives the same file (here 48 frames, 100 steps: past the
+    step-100 progress line)."""
     from services.cli import main
 
     outs = []
     for name in ("a", "b"):
         out = tmp_path / name
         assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "48",
-                     "--steps", "3", "--batch", "2", "--workers", "1", "--no-cache"]) == 0
+                     "--steps", "100", "--batch", "1", "--workers", "1", "--no-cache"]) == 0
         outs.append(out)
     log = json.loads((outs[0] / "train_log.json").read_text())
-    assert log["steps"] == 3 and log["frames"] == 48
-    assert "--steps 3" in log["command"] and "--minutes" not in log["command"]
+    assert log["steps"] == 100 and log["frames"] == 48
+    assert "--steps 100" in log["command"] and "--minutes" not in log["command"]
     assert (outs[0] / "roadseg.onnx").read_bytes() == (outs[1] / "roadseg.onnx").read_bytes()
 
 
