@@ -191,6 +191,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="half of each batch is the other half mirrored, and this weight x the "
                         "divergence of each frame's and its mirror's class probabilities from "
                         "their average joins the loss (default 0: off)")
+    p.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
+                   help="export the moving average of the weights over the training steps "
+                        "(this decay per step, bias-corrected) in place of the last step's, "
+                        "which are saved as roadseg-last.pt (default 0: off)")
     _common(p)
 
     p = sub.add_parser("dump-config", help="print the effective configuration as TOML")

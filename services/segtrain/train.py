@@ -49,6 +49,7 @@ def train_command(args, cfg) -> int:
     seg_data.check_synth_share(args.synth_share)
     check_hard_pixels(args.hard_pixels)  # before minutes of rendering
     check_mirror(args.mirror_consistency, args.batch)
+    check_ema(args.ema)
     if args.border_seed is None:
         args.border_seed = args.seed + BORDER_SEED_OFFSET
     if args.border_frames and args.border_seed == args.seed:
@@ -98,7 +99,7 @@ def train_command(args, cfg) -> int:
                               device=args.device, batch=args.batch, init=args.init,
                               iou_loss=args.iou_loss, arch=args.arch,
                               hard_pixels=args.hard_pixels, mirror=args.mirror_consistency,
-                              crop_hw=crop_size(args.crop, frames.shape[1:3]))
+                              ema=args.ema, crop_hw=crop_size(args.crop, frames.shape[1:3]))
     del frames, labels  # before the border step renders its own
     result["render_s"] = round(render_s, 1)
     return _finish(args, out, result, t_start)
@@ -186,7 +187,7 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
                                   device=args.device, batch=args.batch, init=args.init,
                                   iou_loss=args.iou_loss, arch=args.arch, more=stream.take,
                                   capacity=args.frames, hard_pixels=args.hard_pixels,
-                                  mirror=args.mirror_consistency,
+                                  mirror=args.mirror_consistency, ema=args.ema,
                                   crop_hw=crop_size(args.crop, frames.shape[1:3]))
     finally:
         stream.close()
@@ -224,6 +225,7 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
         + ([f"--hard-pixels {args.hard_pixels:g}"] if args.hard_pixels < 1.0 else [])
         + ([f"--mirror-consistency {args.mirror_consistency:g}"]
            if args.mirror_consistency else [])
+        + ([f"--ema {args.ema:g}"] if args.ema else [])
         + ([f"--crop {args.crop}"] if args.crop != DEFAULT_CROP else [])
         + ([] if args.flip_average else ["--no-flip-average"])
         + ([f"--border-frames {args.border_frames}"] if args.border_frames else [])
@@ -251,7 +253,7 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
                      device: str = "cpu", batch: int = BATCH, init: str | None = None,
                      iou_loss: float = 0.0, arch: str = "s", more=None,
                      capacity: int = 0, crop_hw: tuple[int, int] = CROP_HW,
-                     hard_pixels: float = 1.0, mirror: float = 0.0) -> dict:
+                     hard_pixels: float = 1.0, mirror: float = 0.0, ema: float = 0.0) -> dict:
     """Train RoadSegNet of size `arch` (archs.ARCHS) for train_s seconds (or, with `steps`,
     for exactly that many steps, the schedule spread over them) on `device` (cpu: 2
     threads; cuda: the frames live on the GPU), from scratch or, with `init`, from a trained
@@ -259,7 +261,8 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
     frozen), on class-weighted cross-entropy (over the `hard_pixels` share of each batch's
     pixels with the largest loss: hard_pixel_loss) plus `iou_loss` x soft_jaccard_loss, plus,
     with `mirror` > 0, `mirror` x mirror_consistency_loss (half of each batch mirrors the
-    other half); with `more`
+    other half); with `ema` > 0, the exported weights are their moving average over the
+    steps (WeightAverage; the last step's are saved as roadseg-last.pt); with `more`
     (FrameStream.take) frames keep arriving while it trains, up to `capacity` in all;
     batches are random `crop_hw` (H, W) windows of the frames (the whole frame when it is the
     frame's size); export to ONNX (on the CPU, auxiliary classes folded into none) and check
@@ -293,6 +296,7 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
     opt = torch.optim.AdamW(model.parameters(), lr=lr_max, weight_decay=1e-4)
     check_hard_pixels(hard_pixels)
     check_mirror(mirror, batch)
+    check_ema(ema)
     class_w = torch.tensor(weights, dtype=torch.float32, device=dev)
     loss_fn = torch.nn.CrossEntropyLoss(weight=class_w)
     logger.info("training %d params on %d frames (%d held for validation), weights %s%s",
@@ -301,6 +305,7 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
     model.train()
     if frozen_norms:
         freeze_batch_norm(model)
+    average = WeightAverage(model, ema) if ema else None
     t0, step, losses = time.perf_counter(), 0, []
     while True:
         elapsed = time.perf_counter() - t0  # logged by steps too
@@ -331,6 +336,8 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
         opt.zero_grad()
         loss.backward()
         opt.step()
+        if average is not None:
+            average.update(model)
         losses.append(loss.detach())  # no device sync per step
         step += 1
         if step % TRIM_EVERY == 0:
@@ -340,6 +347,11 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
                         _lr(frac, lr_max), _mean_loss(losses), n_loaded)
     model.eval()
     model.crop_rows = None  # whole frames from here on
+    if average is not None:  # the last step's weights, for comparing (no logit offsets)
+        torch.save({"arch": model.arch, "state": {k: v.cpu() for k, v in
+                                                  model.state_dict().items()},
+                    "frozen_norms": frozen_norms}, out / "roadseg-last.pt")
+        average.load_into(model)
     n_cal = n_val // 2  # validation frames: the first half sets the logit offsets
     bias = calibrate_bias(model, x_all[:n_cal], y_all[:n_cal])
     model.export_classes = NUM_CLASSES  # auxiliary classes folded into none from here on
@@ -368,7 +380,7 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
         "model_bytes": model_path.stat().st_size, "seed": seed, "device": device,
         "batch": batch, "init": init, "lr_max": lr_max, "logit_bias": bias,
         "iou_loss_weight": iou_loss, "hard_pixels": hard_pixels, "arch": arch,
-        "mirror_consistency": mirror,
+        "mirror_consistency": mirror, "ema": ema,
         "refine": refine,
         "crop_hw": list(crop_hw),
         "val_iou_town_runtime": val_runtime,
@@ -455,6 +467,44 @@ def check_mirror(weight: float, batch: int) -> None:
     if weight < 0 or (weight > 0 and batch % 2):
         raise ConfigError(f"--mirror-consistency {weight:g} needs a weight >= 0 and an even "
                           f"--batch (each frame and its mirror), got batch {batch}")
+
+
+def check_ema(decay: float) -> None:
+    """--ema needs a decay in [0, 1) (0: off)."""
+    if not 0.0 <= decay < 1.0:
+        raise ConfigError(f"--ema {decay:g}: the decay must be in [0, 1) (0: off)")
+
+
+class WeightAverage:
+    """An exponential moving average of a model's weights over training steps, bias-corrected
+    as Adam's moments are: it starts from zero, not from the first weights, and is divided by
+    1 - decay^steps, so after t steps the weights of step s count decay^(t - s) (normalised)
+    and the starting model counts nothing. Floating-point parameters and buffers are averaged;
+    integer buffers (batch-norm step counters) are the last step's.
+
+    Batch 8 on two cores is a noisy gradient: the last step's weights sit at a random point of
+    the late, low-learning-rate walk, the average near its centre."""
+
+    def __init__(self, model, decay: float):
+        import torch
+
+        self.decay, self.steps = float(decay), 0
+        self.sums = {k: torch.zeros_like(v) for k, v in model.state_dict().items()
+                     if v.is_floating_point()}
+
+    def update(self, model) -> None:
+        state = model.state_dict()
+        for k, acc in self.sums.items():
+            acc.mul_(self.decay).add_(state[k].detach(), alpha=1.0 - self.decay)
+        self.steps += 1
+
+    def load_into(self, model) -> None:
+        """Set the model's weights to the average (needs one update)."""
+        if not self.steps:
+            raise ValueError("WeightAverage.load_into before any update")
+        norm = 1.0 - self.decay ** self.steps
+        model.load_state_dict({**model.state_dict(),
+                               **{k: v / norm for k, v in self.sums.items()}})
 
 
 def mirror_consistency_loss(logits):
@@ -889,7 +939,8 @@ def model_card(result: dict) -> str:
   class-weighted cross-entropy (weights {result["class_weights"]}){_loss_text(result)}, device
   `{result.get("device", "cpu")}`, batch {result.get("batch", BATCH)}; {result["steps"]} steps in
   {result["train_s"] / 60:.1f} min after {result.get("render_s", 0) / 60:.1f} min of rendering{
-    " (the first frames; rendering went on while it trained)" if result.get("stream") else ""}.
+    " (the first frames; rendering went on while it trained)" if result.get("stream") else ""}.{
+    _ema_text(result)}
   The export is checked against torch with onnxruntime
   (max |diff| {result["onnx_max_abs_diff"]:.1e},
   argmax agreement {result["onnx_argmax_agreement"]:.4f}).
@@ -960,6 +1011,14 @@ def _loss_text(result: dict) -> str:
     mirror = result.get("mirror_consistency", 0.0)
     return text + (f" plus {mirror:g} x mirror consistency (half of each batch mirrored)"
                    if mirror else "")
+
+
+def _ema_text(result: dict) -> str:
+    if not result.get("ema"):
+        return ""
+    return ("\n  The exported weights are the moving average of every step's (decay "
+            f"{result['ema']:g} per step,\n  bias-corrected: WeightAverage), not the last "
+            "step's.")
 
 
 def _init_text(result: dict) -> str:

@@ -1,5 +1,5 @@
-"""The training loss's soft-Jaccard term, hard-pixel cross-entropy and mirror consistency (needs
-the optional torch extra: `.[train]`)."""
+"""The training loss's soft-Jaccard term, hard-pixel cross-entropy and mirror consistency, and
+the moving average of the weights (needs the optional torch extra: `.[train]`)."""
 
 import json
 
@@ -11,6 +11,7 @@ from common.classes import Cls
 torch = pytest.importorskip("torch", reason="training tests need the .[train] extra (torch)")
 
 from services.segtrain.train import (  # noqa: E402
+    WeightAverage,
     hard_pixel_loss,
     mirror_consistency_loss,
     soft_jaccard_loss,
@@ -137,3 +138,48 @@ def test_bad_steps_are_refused_before_rendering(tmp_path, capsys):
     assert main(["train-seg", "--out", str(tmp_path), "--steps", "9", "--stream"]) == 1
     assert "would not be reproducible" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # nothing rendered, nothing written
+
+
+def test_weight_average_weighs_steps_by_decay_and_not_the_starting_weights():
+    model = torch.nn.Sequential(torch.nn.Linear(2, 1), torch.nn.BatchNorm1d(1))
+    with torch.no_grad():
+        model[0].weight.fill_(100.0)  # the starting weights: must count nothing
+    average = WeightAverage(model, 0.5)
+    for value in (1.0, 2.0, 4.0):
+        with torch.no_grad():
+            model[0].weight.fill_(value)
+        model[1].num_batches_tracked.fill_(int(value))
+        average.update(model)
+    average.load_into(model)
+    # weights 1/7, 2/7, 4/7 for the steps (decay 0.5, normalised by 1 - 0.5^3)
+    expected = (1.0 * 0.25 + 2.0 * 0.5 + 4.0 * 1.0) / 1.75
+    assert torch.allclose(model[0].weight, torch.full((1, 2), expected))
+    assert int(model[1].num_batches_tracked) == 4  # integer buffers: the last step's
+
+
+def test_weight_average_needs_an_update():
+    with pytest.raises(ValueError, match="before any update"):
+        WeightAverage(torch.nn.Linear(2, 1), 0.9).load_into(torch.nn.Linear(2, 1))
+
+
+def test_a_run_with_ema_exports_the_average_and_keeps_the_last_weights(tmp_path):
+    from services.cli import main
+
+    assert main(["train-seg", "--out", str(tmp_path), "--seed", "5", "--frames", "16",
+                 "--steps", "20", "--batch", "1", "--workers", "1", "--no-cache",
+                 "--ema", "0.9"]) == 0
+    log = json.loads((tmp_path / "train_log.json").read_text())
+    assert log["ema"] == 0.9 and "--ema 0.9" in log["command"]
+    last = torch.load(tmp_path / "roadseg-last.pt")["state"]
+    exported = torch.load(tmp_path / "roadseg.pt")["state"]
+    # the average is not the last step's (the head's bias also carries the logit offsets)
+    assert not torch.allclose(last["stem.0.weight"], exported["stem.0.weight"])
+    assert "moving average" in (tmp_path / "MODEL_CARD.md").read_text()
+
+
+def test_a_bad_ema_decay_is_refused_before_rendering(tmp_path, capsys):
+    from services.cli import main
+
+    assert main(["train-seg", "--out", str(tmp_path), "--ema", "1"]) == 1
+    assert "--ema 1: the decay must be in [0, 1)" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
