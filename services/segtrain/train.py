@@ -83,6 +83,8 @@ def train_command(args, cfg) -> int:
     if args.render_only:
         logger.info("%d training frames rendered in %.0f s (cached)", len(frames), render_s)
         return 0
+    if args.export_only:
+        return _export_only(args, out, frames, labels)
     if args.refine_only:  # the calibration frames a training run on these frames would use
         n_cal = validation_frames(len(frames)) // 2
         refine = calibrate_refine(args.refine_only, frames[:n_cal], labels[:n_cal])
@@ -103,6 +105,47 @@ def train_command(args, cfg) -> int:
     del frames, labels  # before the border step renders its own
     result["render_s"] = round(render_s, 1)
     return _finish(args, out, result, t_start)
+
+
+def _export_only(args, out: Path, frames: np.ndarray, labels: np.ndarray) -> int:
+    """--export-only PT: a training run's saved weights (roadseg.pt, or the roadseg-last.pt of
+    an --ema run) calibrated and exported as that run would have (calibrate_and_export on the
+    held-out frames of these rendering settings, flip averaging, --border-frames) to
+    --out/roadseg.onnx; the log goes to --out/export_log.json. With the run's --seed and
+    --frames, the held-out frames are the run's: an --ema run's two weights, compared alike."""
+    import torch
+
+    from services.segtrain.net import RoadSegNet, freeze_batch_norm
+
+    saved = torch.load(args.export_only, map_location="cpu")
+    model = RoadSegNet(num_classes=seg_data.TRAIN_CLASSES, **saved["arch"])
+    model.load_state_dict(saved["state"])
+    model.eval()
+    if saved.get("frozen_norms"):
+        freeze_batch_norm(model)
+    n_val = validation_frames(len(frames))
+    x_val = torch.from_numpy(frames[:n_val]).permute(0, 3, 1, 2)
+    y_val = torch.from_numpy(labels[:n_val])
+    log = calibrate_and_export(model, x_val, y_val, frames[:n_val], labels[:n_val], out,
+                               seed=args.seed, frozen_norms=bool(saved.get("frozen_norms")))
+    del frames, labels  # before the border step renders its own
+    log.update(_flip_and_border(args, out), weights=str(args.export_only), seed=args.seed,
+               frames=n_val)
+    (out / "export_log.json").write_text(json.dumps(log, indent=2))
+    logger.info("%s -> %s: %s", args.export_only, out / "roadseg.onnx", log)
+    return 0
+
+
+def _flip_and_border(args, out: Path) -> dict:
+    """Flip averaging into out/roadseg.onnx's metadata, then (--border-frames) its border
+    classifier, fitted on the logits the runtime will decide -> their part of the log."""
+    set_metadata(out / "roadseg.onnx", flip_average=bool(args.flip_average))
+    log = {"flip_average": bool(args.flip_average)}
+    if args.border_frames:  # all its frames rendered: no time budget
+        log["border"] = fit_border_step(out / "roadseg.onnx", seed=args.border_seed,
+                                        frames=args.border_frames, args=args,
+                                        budget_s=NO_RENDER_BUDGET_S)
+    return log
 
 
 def _border_only(args, out: Path) -> int:
@@ -200,12 +243,7 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
     minutes = float(args.minutes)
     # flip averaging is on before the border classifier is fitted, so that it learns the
     # borders of the averaged logits the runtime will decide (as the packaged file was made)
-    set_metadata(out / "roadseg.onnx", flip_average=bool(args.flip_average))
-    result["flip_average"] = bool(args.flip_average)
-    if args.border_frames:  # all its frames rendered: no time budget
-        result["border"] = fit_border_step(out / "roadseg.onnx", seed=args.border_seed,
-                                           frames=args.border_frames, args=args,
-                                           budget_s=NO_RENDER_BUDGET_S)
+    result.update(_flip_and_border(args, out))
     result["minutes"] = minutes
     result["turn_prob"] = args.turn_prob
     result["synth_share"] = args.synth_share
@@ -352,13 +390,40 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
                                                   model.state_dict().items()},
                     "frozen_norms": frozen_norms}, out / "roadseg-last.pt")
         average.load_into(model)
-    n_cal = n_val // 2  # validation frames: the first half sets the logit offsets
-    bias = calibrate_bias(model, x_all[:n_cal], y_all[:n_cal])
+    # the held-out frames' first half sets the logit offsets and paint borders
+    exported = calibrate_and_export(model, x_all[:n_val], y_all[:n_val], frames[:n_val],
+                                    labels[:n_val], out, seed=seed, frozen_norms=frozen_norms)
+    del x_all, y_all
+    return {
+        "steps": step, "train_s": round(time.perf_counter() - t0, 1), "frames": n_loaded,
+        "class_weights": np.round(weights, 3).tolist(),
+        "final_loss": _mean_loss(losses) if losses else None,
+        "seed": seed, "device": device,
+        "batch": batch, "init": init, "lr_max": lr_max,
+        "iou_loss_weight": iou_loss, "hard_pixels": hard_pixels, "arch": arch,
+        "mirror_consistency": mirror, "ema": ema,
+        "crop_hw": list(crop_hw),
+        **exported,
+    }
+
+
+def calibrate_and_export(model, x_val, y_val, frames_val: np.ndarray, labels_val: np.ndarray,
+                         out: Path, *, seed: int, frozen_norms: bool) -> dict:
+    """A trained model (eval mode, whole frames) and its run's held-out frames (x_val, y_val:
+    uint8 tensors NCHW and NHW on the model's device; frames_val, labels_val: the same as
+    arrays): the first half sets the logit offsets (calibrate_bias) and the paint-border
+    settings (calibrate_refine), the second half validates; writes out/roadseg.pt and the
+    checked out/roadseg.onnx -> what it measured, for the training log."""
+    import torch
+
+    from services.segtrain.net import count_parameters
+
+    n_cal = len(x_val) // 2
+    bias = calibrate_bias(model, x_val[:n_cal], y_val[:n_cal])
     model.export_classes = NUM_CLASSES  # auxiliary classes folded into none from here on
-    val_iou = _validate(model, x_all[n_cal:n_val], y_all[n_cal:n_val])  # the second half
+    val_iou = _validate(model, x_val[n_cal:], y_val[n_cal:])
     logger.info("validation IoU (procedural towns, held out): %s", val_iou)
-    model, x_all = model.cpu(), x_all[:4].cpu()
-    del y_all
+    model, x_check = model.cpu(), x_val[:4].cpu()
     model_path = out / "roadseg.onnx"
     # for fine-tuning (--init); not packaged. Saved with the logit offsets in the head's bias,
     # and whether its batch norms were frozen (a fine-tune of an export: norms folded into the
@@ -366,25 +431,16 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
     torch.save({"arch": model.arch, "state": model.state_dict(), "frozen_norms": frozen_norms},
                out / "roadseg.pt")
     export_onnx(model, model_path, seed=seed)
-    max_diff, agree = verify_onnx(model, model_path, x_all[:4])
-    refine = calibrate_refine(model_path, frames[:n_cal], labels[:n_cal])
+    max_diff, agree = verify_onnx(model, model_path, x_check)
+    refine = calibrate_refine(model_path, frames_val[:n_cal], labels_val[:n_cal])
     set_metadata(model_path, refine=refine)
-    val_runtime = runtime_iou(model_path, frames[n_cal:n_val], labels[n_cal:n_val])
+    val_runtime = runtime_iou(model_path, frames_val[n_cal:], labels_val[n_cal:])
     logger.info("paint borders: %s; validation IoU as the runtime segments: %s", refine,
                 val_runtime)
-    return {
-        "steps": step, "train_s": round(time.perf_counter() - t0, 1), "frames": n_loaded,
-        "params": count_parameters(model), "class_weights": np.round(weights, 3).tolist(),
-        "final_loss": _mean_loss(losses) if losses else None,
-        "val_iou_town": val_iou, "onnx_max_abs_diff": max_diff, "onnx_argmax_agreement": agree,
-        "model_bytes": model_path.stat().st_size, "seed": seed, "device": device,
-        "batch": batch, "init": init, "lr_max": lr_max, "logit_bias": bias,
-        "iou_loss_weight": iou_loss, "hard_pixels": hard_pixels, "arch": arch,
-        "mirror_consistency": mirror, "ema": ema,
-        "refine": refine,
-        "crop_hw": list(crop_hw),
-        "val_iou_town_runtime": val_runtime,
-    }
+    return {"params": count_parameters(model), "val_iou_town": val_iou,
+            "onnx_max_abs_diff": max_diff, "onnx_argmax_agreement": agree,
+            "model_bytes": model_path.stat().st_size, "logit_bias": bias, "refine": refine,
+            "val_iou_town_runtime": val_runtime}
 
 
 def interleaved_halves(n: int) -> np.ndarray:
