@@ -64,6 +64,9 @@ def train_command(args, cfg) -> int:
     if args.steps is not None and args.steps < 1:
         raise ConfigError(f"--steps {args.steps}: at least 1")
     if args.stream:
+        if args.export_only:
+            raise ConfigError("--export-only with --stream: it calibrates on a rendered run's "
+                              "held-out frames; leave out --stream")
         if args.steps is not None:
             raise ConfigError("--steps with --stream: streamed frames arrive at the machine's "
                               "pace, so the run would not be reproducible; leave one out")

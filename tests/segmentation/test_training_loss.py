@@ -137,6 +137,8 @@ def test_bad_steps_are_refused_before_rendering(tmp_path, capsys):
     assert "--steps 0: at least 1" in capsys.readouterr().err
     assert main(["train-seg", "--out", str(tmp_path), "--steps", "9", "--stream"]) == 1
     assert "would not be reproducible" in capsys.readouterr().err
+    assert main(["train-seg", "--out", str(tmp_path), "--export-only", "x.pt", "--stream"]) == 1
+    assert "leave out --stream" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # nothing rendered, nothing written
 
 
