@@ -50,6 +50,9 @@ def train_command(args, cfg) -> int:
     check_hard_pixels(args.hard_pixels)  # before minutes of rendering
     check_mirror(args.mirror_consistency, args.batch)
     check_ema(args.ema)
+    if args.export_only and not Path(args.export_only).is_file():
+        raise ConfigError(f"--export-only {args.export_only}: no such file (a run's roadseg.pt "
+                          "or roadseg-last.pt)")
     if args.border_seed is None:
         args.border_seed = args.seed + BORDER_SEED_OFFSET
     if args.border_frames and args.border_seed == args.seed:

@@ -133,13 +133,19 @@ def test_a_run_by_steps_is_the_same_run_twice(tmp_path):
 def test_bad_steps_are_refused_before_rendering(tmp_path, capsys):
     from services.cli import main
 
-    assert main(["train-seg", "--out", str(tmp_path), "--steps", "0"]) == 1
+    out = tmp_path / "out"
+    assert main(["train-seg", "--out", str(out), "--steps", "0"]) == 1
     assert "--steps 0: at least 1" in capsys.readouterr().err
-    assert main(["train-seg", "--out", str(tmp_path), "--steps", "9", "--stream"]) == 1
+    assert main(["train-seg", "--out", str(out), "--steps", "9", "--stream"]) == 1
     assert "would not be reproducible" in capsys.readouterr().err
-    assert main(["train-seg", "--out", str(tmp_path), "--export-only", "x.pt", "--stream"]) == 1
+    assert main(["train-seg", "--out", str(out), "--export-only", "x.pt"]) == 1
+    assert "--export-only x.pt: no such file" in capsys.readouterr().err
+    weights = tmp_path / "weights.pt"
+    weights.write_bytes(b"")
+    assert main(["train-seg", "--out", str(out), "--export-only", str(weights),
+                 "--stream"]) == 1
     assert "leave out --stream" in capsys.readouterr().err
-    assert not any(tmp_path.iterdir())  # nothing rendered, nothing written
+    assert not any(out.iterdir())  # nothing rendered, nothing written
 
 
 def test_weight_average_weighs_steps_by_decay_and_not_the_starting_weights():
