@@ -121,20 +121,17 @@ def _export_only(args, out: Path, frames: np.ndarray, labels: np.ndarray) -> int
     --frames, the held-out frames are the run's: an --ema run's two weights, compared alike."""
     import torch
 
-    from services.segtrain.net import RoadSegNet, freeze_batch_norm
+    from services.segtrain.net import RoadSegNet
 
     saved = torch.load(args.export_only, map_location="cpu")
     model = RoadSegNet(num_classes=seg_data.TRAIN_CLASSES, **saved["arch"])
     model.load_state_dict(saved["state"])
-    model.eval()
-    if saved.get("frozen_norms"):
-        freeze_batch_norm(model)
+    model.eval()  # every batch norm on its running statistics, frozen or not
     n_val = validation_frames(len(frames))
     x_val = torch.from_numpy(frames[:n_val]).permute(0, 3, 1, 2)
     y_val = torch.from_numpy(labels[:n_val])
     log = calibrate_and_export(model, x_val, y_val, frames[:n_val], labels[:n_val], out,
                                seed=args.seed, frozen_norms=bool(saved.get("frozen_norms")))
-    del frames, labels  # before the border step renders its own
     log.update(_flip_and_border(args, out), weights=str(args.export_only), seed=args.seed,
                frames=n_val)
     (out / "export_log.json").write_text(json.dumps(log, indent=2))
@@ -399,7 +396,6 @@ def train_and_export(frames, labels, out: Path, *, seed: int, train_s: float,
     # the held-out frames' first half sets the logit offsets and paint borders
     exported = calibrate_and_export(model, x_all[:n_val], y_all[:n_val], frames[:n_val],
                                     labels[:n_val], out, seed=seed, frozen_norms=frozen_norms)
-    del x_all, y_all
     return {
         "steps": step, "train_s": round(time.perf_counter() - t0, 1), "frames": n_loaded,
         "class_weights": np.round(weights, 3).tolist(),

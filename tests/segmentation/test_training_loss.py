@@ -130,7 +130,7 @@ def test_a_run_by_steps_is_the_same_run_twice(tmp_path):
     assert (outs[0] / "roadseg.onnx").read_bytes() == (outs[1] / "roadseg.onnx").read_bytes()
 
 
-def test_bad_steps_are_refused_before_rendering(tmp_path, capsys):
+def test_bad_steps_and_export_only_are_refused_before_rendering(tmp_path, capsys):
     from services.cli import main
 
     out = tmp_path / "out"
