@@ -200,6 +200,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="export the moving average of the weights over the training steps "
                         "(this decay per step, bias-corrected) in place of the last step's, "
                         "which are saved as roadseg-last.pt (default 0: off)")
+    p.add_argument("--soup", default=None, type=lambda v: v.split(","), metavar="D1,D2",
+                   help="one run per junction-line dose (light, heavy: services/segtrain/data.py "
+                        "JUNCTIONS), --frames, the budgets or --steps shared out evenly, and "
+                        "their weights averaged into the export (default: one run, light)")
     _common(p)
 
     p = sub.add_parser("dump-config", help="print the effective configuration as TOML")

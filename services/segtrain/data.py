@@ -40,6 +40,10 @@ SUNLIT_CURB = 0.5
 # lanes split by a raised median (services.sim.town): real maps' arterials are wide, and the
 # Argoverse 2 frames' far field, many converging lines, is where their lane line was lost.
 LANE_MIX = (0.45, 0.3, 0.17, 0.08)
+# junction lines (junction_lines): "light" in 80 % of the towns at 30-90 % of their junctions,
+# drawn after `restyled`; "heavy" in every town at 50-100 %, 1-4 turn guides, drawn before it
+# (the straight lines then also cross the mouths of roads whose edge lines it later drops)
+JUNCTIONS = ("light", "heavy")
 MEDIAN_PROB = 0.35
 
 
@@ -80,11 +84,17 @@ def _share_key(synth_share: float) -> str:
     return "" if synth_share == SYNTH_SHARE else f"-y{round(10 * synth_share)}"
 
 
+def check_junctions(junctions: str) -> None:
+    if junctions not in JUNCTIONS:
+        raise ConfigError(f"junction lines {junctions!r}: one of {', '.join(JUNCTIONS)}")
+
+
 def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
                  max_frames: int = 6000, workers: int = 1, cache_dir: Path | None = None,
                  cache: bool = True, turn_prob: float = TURN_PROB,
-                 synth_share: float = SYNTH_SHARE):
-    """(frames (N, H, W, 3) uint8, labels (N, H, W) uint8) from procedural towns; cached.
+                 synth_share: float = SYNTH_SHARE, junctions: str = "light"):
+    """(frames (N, H, W, 3) uint8, labels (N, H, W) uint8) from procedural towns (their
+    junction lines as `junctions` says: town_world); cached.
 
     The set is a sequence of chunks (one town, CHUNK_FRAMES frames each), chunk k rendered from
     its own seed (seed, k) alone, so the first n chunks are the same whatever `workers` renders
@@ -93,14 +103,16 @@ def training_set(*, seed: int, input_size: tuple[int, int], budget_s: float,
     # the budget is in the key: a set cut short by a smaller budget is not reused for a larger
     path = cache_dir / (f"towns-v13-s{seed}-{input_size[0]}x{input_size[1]}-n{max_frames}"
                         f"-b{round(budget_s)}-t{round(100 * turn_prob)}"
-                        f"{_share_key(synth_share)}.npz")
+                        f"{_share_key(synth_share)}"
+                        f"{'' if junctions == 'light' else '-j' + junctions}.npz")
     if cache and path.is_file():
         logger.info("training frames from cache %s", path)
         with np.load(path) as z:
             return z["frames"], z["labels"]
     sim = _sim_available()
     n_chunks = -(-max_frames // CHUNK_FRAMES)
-    jobs = [(seed, k, tuple(input_size), sim, turn_prob, synth_share) for k in range(n_chunks)]
+    jobs = [(seed, k, tuple(input_size), sim, turn_prob, synth_share, junctions)
+            for k in range(n_chunks)]
     t0 = time.perf_counter()
     w, h = input_size
     # filled chunk by chunk and permuted in place: 12000 frames are 11 GB, and a list of chunks
@@ -264,7 +276,8 @@ def _stream_worker(folder: Path, seed: int, index: int, workers: int, n_chunks: 
         while len(list(folder.glob("*.npz"))) > 4 * workers:  # the trainer is behind: wait
             time.sleep(0.5)
         try:
-            frames, labels = _render_chunk((seed, k, input_size, sim, turn_prob, synth_share))
+            frames, labels = _render_chunk((seed, k, input_size, sim, turn_prob, synth_share,
+                                            "light"))
         except Exception:
             (folder / f"{k}.err").write_text(traceback.format_exc())
             return
@@ -275,9 +288,9 @@ def _stream_worker(folder: Path, seed: int, index: int, workers: int, n_chunks: 
 
 def _render_chunk(job):
     """CHUNK_FRAMES (frames, labels) of chunk k: one town, synth.py or the simulator."""
-    seed, k, input_size, sim, turn_prob, synth_share = job
+    seed, k, input_size, sim, turn_prob, synth_share, junctions = job
     rng = np.random.default_rng([seed, k])
-    world = town_world(10_000 * (seed + 1) + k, rng)
+    world = town_world(10_000 * (seed + 1) + k, rng, junctions)
     if sim and k % 10 >= round(10 * synth_share):
         pairs = _sim_frames(world, rng, turn_prob)
     else:
@@ -378,17 +391,22 @@ def restyled(world, rng):
     return dataclasses.replace(world, markings=out)
 
 
-def junction_lines(world, rng):
+def junction_lines(world, rng, dose: str = "light"):
     """Dashed lane lines through the towns' intersections, as real maps paint them and the
     towns (paint stops at the junction box) never do: lines that run on straight across (the
     priority road's edge and lane lines over a side road's mouth) and curved turn guides.
     Seen from an approach or a turn they cross the view like stop lines; only their dashes and
     width tell. On the held-out Karlsruhe frames such lines (thin dashes across junctions,
     thick 0.25 m dashes seen obliquely while turning) were the lane line called stop line or
-    ground sign: 0.10 of that world's lane-line IoU."""
+    ground sign: 0.10 of that world's lane-line IoU. `dose` "light" or "heavy": JUNCTIONS
+    (the heavy dashes are of kind "junction", so that `restyled` keeps their widths)."""
     from services.sim import paint
 
-    p_junction = rng.uniform(0.3, 0.9) if rng.random() < 0.8 else 0.0
+    heavy = dose == "heavy"
+    if heavy:
+        p_junction = rng.uniform(0.5, 1.0)
+    else:
+        p_junction = rng.uniform(0.3, 0.9) if rng.random() < 0.8 else 0.0
     if p_junction == 0.0:
         return world
     boxes = [m.polygon_xy_m.astype(np.float32) for m in world.markings
@@ -407,11 +425,12 @@ def junction_lines(world, rng):
         dash = rng.uniform(1.0, 3.5)
         gap = dash * rng.uniform(0.5, 2.0)
         drawn: list = []
-        for path in _straight_paths(near) + _turn_paths(box, near, rng):
+        for path in _straight_paths(near) + _turn_paths(box, near, rng, 4 if heavy else 3):
             if any(_same_path(path, q) for q in drawn):
                 continue
             drawn.append(path)
-            out += paint.line_markings(path, "dashed", width, dash, gap, rng.uniform(0, gap))
+            dashes = paint.line_markings(path, "dashed", width, dash, gap, rng.uniform(0, gap))
+            out += [dataclasses.replace(m, kind="junction") for m in dashes] if heavy else dashes
     return dataclasses.replace(world, markings=out)
 
 
@@ -467,8 +486,8 @@ def _straight_paths(ends) -> list:
     return paths
 
 
-def _turn_paths(box, ends, rng) -> list:
-    """1-3 quadratic curves, each joining two lines that meet the box at 60-120 deg."""
+def _turn_paths(box, ends, rng, most: int = 3) -> list:
+    """1 to `most` quadratic curves, each joining two lines that meet the box at 60-120 deg."""
     entries = []
     for p, d, span in ends:
         if span is not None and span[0] < 12.0:
@@ -487,7 +506,7 @@ def _turn_paths(box, ends, rng) -> list:
             curve = (1 - w) ** 2 * a + 2 * (1 - w) * w * (a + s * da) + w ** 2 * b
             if _inside(box, curve).mean() > 0.8:
                 curves.append(curve)
-    order = rng.permutation(len(curves))[:int(rng.integers(1, 4))]
+    order = rng.permutation(len(curves))[:int(rng.integers(1, most + 1))]
     return [curves[k] for k in order]
 
 
@@ -523,10 +542,13 @@ def _strip_from(centre, off):
     return np.concatenate([centre + off, (centre - off)[::-1]])
 
 
-def town_world(seed: int, rng):
-    """A training town (0.6-1.5 km) with wide roads, lines through its junctions, and thinned
-    and restyled paint."""
+def town_world(seed: int, rng, junctions: str = "light"):
+    """A training town (0.6-1.5 km) with wide roads, lines through its junctions (JUNCTIONS),
+    and thinned and restyled paint."""
     from services.sim.town import build_town
 
+    check_junctions(junctions)
     world = build_town(round(rng.uniform(0.6, 1.5), 2), seed, LANE_MIX, MEDIAN_PROB)
+    if junctions == "heavy":
+        return thinned(restyled(junction_lines(world, rng, "heavy"), rng), rng)
     return thinned(junction_lines(restyled(world, rng), rng), rng)
