@@ -7,7 +7,14 @@ import pytest
 from common.classes import Cls
 from common.errors import ConfigError
 from common.segmentation import argmax_channels
-from services.segtrain.data import _inside, _save_cache, _strip_halves, junction_lines, restyled
+from services.segtrain.data import (
+    _inside,
+    _save_cache,
+    _strip_halves,
+    junction_lines,
+    restyled,
+    town_world,
+)
 from services.sim.worlds import load_world
 
 
@@ -53,6 +60,25 @@ def test_junction_lines_are_dashed_lane_lines_inside_the_intersections():
         assert any(_inside(box, centre)[0] for box in boxes)  # in a junction, not on a road
         length = np.linalg.norm(np.ptp(m.polygon_xy_m, axis=0))
         assert length < 4.0  # dashes of at most 3.5 m, not solid lines
+
+
+def test_heavy_junction_lines_are_more_and_keep_their_widths_through_restyling():
+    """The heavy dose (a --soup run's other towns) paints lines through more junctions, before
+    `restyled`, as dashes of kind "junction" that it leaves at their drawn width; the light
+    dose is the recipe's towns."""
+    world = load_world("town:0.8", 3)
+    light = [len(junction_lines(world, np.random.default_rng(s)).markings) for s in range(6)]
+    heavy = [len(junction_lines(world, np.random.default_rng(s), "heavy").markings)
+             for s in range(6)]
+    assert sum(heavy) > sum(light) > 6 * len(world.markings)
+    town = town_world(7, np.random.default_rng(7), "heavy")
+    dashes = _widths(town, Cls.LANE_LINE, ("junction",))
+    assert len(dashes) > 10
+    assert ((dashes > 0.099) & (dashes < 0.161) | (dashes > 0.199) & (dashes < 0.301)).all()
+    junctions = sum(m.kind == "intersection" for m in town.markings)
+    assert len(set(np.round(dashes, 4))) <= junctions < len(dashes)  # a width per junction
+    with pytest.raises(ConfigError, match="one of light, heavy"):
+        town_world(7, np.random.default_rng(7), "wide")
 
 
 def test_argmax_channels_matches_numpy_including_ties(rng):

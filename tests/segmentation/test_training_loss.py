@@ -130,6 +130,44 @@ def test_a_run_by_steps_is_the_same_run_twice(tmp_path):
     assert (outs[0] / "roadseg.onnx").read_bytes() == (outs[1] / "roadseg.onnx").read_bytes()
 
 
+def test_a_soup_exports_the_average_of_its_runs(tmp_path):
+    """--soup light,heavy: a run on each dose's towns, half the frames and steps each, and the
+    export is their weights' mean (the head's bias aside: the offsets are calibrated on the
+    average), as the two runs made alone give them."""
+    from services.cli import main
+
+    common = ["--seed", "5", "--batch", "1", "--workers", "1", "--no-cache"]
+    for name, soup, frames, steps in (("soup", "light,heavy", "48", "8"),
+                                      ("light", "light", "24", "4"),
+                                      ("heavy", "heavy", "24", "4")):
+        assert main(["train-seg", "--out", str(tmp_path / name), "--frames", frames,
+                     "--steps", steps, "--soup", soup, *common]) == 0
+    log = json.loads((tmp_path / "soup" / "train_log.json").read_text())
+    assert [(r["junctions"], r["steps"], r["frames"]) for r in log["soup"]] == [
+        ("light", 4, 24), ("heavy", 4, 24)]
+    assert "--soup light,heavy" in log["command"]
+    assert "A soup of 2 runs" in (tmp_path / "soup" / "MODEL_CARD.md").read_text()
+    soup, light, heavy = (torch.load(tmp_path / n / "roadseg.pt")["state"]
+                          for n in ("soup", "light", "heavy"))
+    assert not torch.equal(light["stem.0.weight"], heavy["stem.0.weight"])
+    for name, value in soup.items():
+        if value.is_floating_point() and name != "head.bias":
+            torch.testing.assert_close(value, (light[name] + heavy[name]) / 2)
+
+
+def test_bad_soups_are_refused_before_rendering(tmp_path, capsys):
+    from services.cli import main
+
+    out = tmp_path / "out"
+    assert main(["train-seg", "--out", str(out), "--soup", "light,wide"]) == 1
+    assert "junction lines 'wide': one of light, heavy" in capsys.readouterr().err
+    assert main(["train-seg", "--out", str(out), "--soup", "light,heavy", "--ema", "0.9"]) == 1
+    assert "--soup with --ema: leave one out" in capsys.readouterr().err
+    assert main(["train-seg", "--out", str(out), "--soup", "light,heavy", "--frames", "10"]) == 1
+    assert "leaves under 8 frames" in capsys.readouterr().err
+    assert not any(out.iterdir())  # nothing rendered, nothing written
+
+
 def test_bad_steps_and_export_only_are_refused_before_rendering(tmp_path, capsys):
     from services.cli import main
 
