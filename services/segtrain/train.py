@@ -77,12 +77,7 @@ def train_command(args, cfg) -> int:
         return _train_streamed(args, out, t_start)
     if args.soup:
         return _train_soup(args, out, t_start)
-    if args.render_minutes is not None:
-        render_budget_s = 60.0 * args.render_minutes
-    elif args.steps is not None:  # a run by steps renders all its frames
-        render_budget_s = NO_RENDER_BUDGET_S
-    else:
-        render_budget_s = min(0.2 * minutes * 60.0, 10 * 60.0)
+    render_budget_s = _render_budget_s(args)
     frames, labels = seg_data.training_set(seed=args.seed, input_size=INPUT_SIZE,
                                            budget_s=render_budget_s, max_frames=args.frames,
                                            workers=args.workers, cache=not args.no_cache,
@@ -136,6 +131,16 @@ def check_soup(args) -> None:
                           f"{len(args.soup)} no step")
 
 
+def _render_budget_s(args) -> float:
+    """Seconds of rendering: --render-minutes; a run by --steps renders every frame; else 20 %
+    of --minutes, at most 10 minutes."""
+    if args.render_minutes is not None:
+        return 60.0 * args.render_minutes
+    if args.steps is not None:
+        return NO_RENDER_BUDGET_S
+    return min(0.2 * float(args.minutes) * 60.0, 10 * 60.0)
+
+
 def _train_soup(args, out: Path, t_start: float) -> int:
     """--soup D1,D2,...: one run per junction-line dose (data.JUNCTIONS), one after the other,
     each from --init on its own towns' frames (--frames, the render budget and the training
@@ -146,16 +151,12 @@ def _train_soup(args, out: Path, t_start: float) -> int:
 
     Why (2026-11-26): the weights of two full runs of the recipe, one on towns with light
     junction lines and one on towns with heavy ones, averaged, scored mean lane line +0.003
-    [+0.0013, +0.0048] over the better run; averaging runs of the same towns gave +0.001."""
+    [+0.0013, +0.0048] over the better run; averaging runs of the same towns gave +0.001.
+    Members of half a run each (the recipe's hour shared out) scored 0.005 below one full run
+    (MODEL_CARD, evening section): the soup pays where full-length members fit, on a GPU."""
     doses, k = args.soup, len(args.soup)
-    minutes = float(args.minutes)
-    if args.render_minutes is not None:
-        render_budget_s = 60.0 * args.render_minutes
-    elif args.steps is not None:
-        render_budget_s = NO_RENDER_BUDGET_S
-    else:
-        render_budget_s = min(0.2 * minutes * 60.0, 10 * 60.0)
-    train_s = max(minutes * 60.0 - render_budget_s - 60.0, 60.0 * k) / k
+    render_budget_s = _render_budget_s(args)
+    train_s = max(float(args.minutes) * 60.0 - render_budget_s - 60.0, 60.0 * k) / k
     states, held, runs, render_s, frozen_norms = [], [], [], 0.0, False
     model = None
     for i, dose in enumerate(doses):
