@@ -149,11 +149,11 @@ def _train_soup(args, out: Path, t_start: float) -> int:
     average, at one network's cost), calibrated on the runs' held-out frames and exported as
     one run's would be.
 
-    Why (2026-11-26): the weights of two full runs of the recipe, one on towns with light
-    junction lines and one on towns with heavy ones, averaged, scored mean lane line +0.003
-    [+0.0013, +0.0048] over the better run; averaging runs of the same towns gave +0.001.
-    Members of half a run each (the recipe's hour shared out) scored 0.005 below one full run
-    (MODEL_CARD, evening section): the soup pays where full-length members fit, on a GPU."""
+    Why (2026-11-26, MODEL_CARD evening section): two full runs of the recipe, one on light
+    and one on heavy junction lines, averaged, scored mean lane line 0.001-0.003 above their
+    mean (runs J1 + J2, run SH); averaging runs of the same towns gave less. Members of half a
+    run each (the recipe's hour shared out) scored 0.005 below one full run: the soup pays
+    only where full-length members fit, on a GPU."""
     doses, k = args.soup, len(args.soup)
     render_budget_s = _render_budget_s(args)
     train_s = max(float(args.minutes) * 60.0 - render_budget_s - 60.0, 60.0 * k) / k
