@@ -157,8 +157,7 @@ def _train_soup(args, out: Path, t_start: float) -> int:
     doses, k = args.soup, len(args.soup)
     render_budget_s = _render_budget_s(args)
     train_s = max(float(args.minutes) * 60.0 - render_budget_s - 60.0, 60.0 * k) / k
-    states, held, runs, render_s, frozen_norms = [], [], [], 0.0, False
-    model = None
+    states, held, runs, render_s = [], [], [], 0.0
     for i, dose in enumerate(doses):
         t0 = time.perf_counter()
         frames, labels = seg_data.training_set(
@@ -174,9 +173,11 @@ def _train_soup(args, out: Path, t_start: float) -> int:
             device=args.device, batch=args.batch, init=args.init, iou_loss=args.iou_loss,
             arch=args.arch, hard_pixels=args.hard_pixels, mirror=args.mirror_consistency,
             crop_hw=crop_size(args.crop, frames.shape[1:3]))
-        del frames, labels
+        # the held-out arrays are views of this run's frames: copied, so the frames can go
+        x_val, y_val, frames_val, labels_val = held_out
+        held.append((x_val, y_val, frames_val.copy(), labels_val.copy()))
+        del frames, labels, held_out
         states.append({name: v.detach().clone() for name, v in model.state_dict().items()})
-        held.append(held_out)
         runs.append({"junctions": dose, **run})
     model.load_state_dict(average_states(states))
     x_val, y_val, frames_val, labels_val = _calibration_first(held)
@@ -421,7 +422,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     batches are random `crop_hw` (H, W) windows of the frames (the whole frame when it is the
     frame's size) -> (the model in eval mode, whether its batch norms were kept frozen, the
     held-out frames (x_val, y_val: copies as uint8 tensors NCHW and NHW on `device`; the same
-    as arrays), the training log's entries)."""
+    as views of `frames`, `labels`), the training log's entries)."""
     import torch
 
     from services.segtrain.net import RoadSegNet, count_parameters, freeze_batch_norm
@@ -507,10 +508,9 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
                                                   model.state_dict().items()},
                     "frozen_norms": frozen_norms}, out / "roadseg-last.pt")
         average.load_into(model)
-    # the held-out frames' first half sets the logit offsets and paint borders (copies: the
-    # training frames can go)
-    held_out = (x_all[:n_val].clone(), y_all[:n_val].clone(), frames[:n_val].copy(),
-                labels[:n_val].copy())
+    # the held-out frames' first half sets the logit offsets and paint borders (the tensors
+    # copied, so the training tensors can go)
+    held_out = (x_all[:n_val].clone(), y_all[:n_val].clone(), frames[:n_val], labels[:n_val])
     return model, frozen_norms, held_out, {
         "steps": step, "train_s": round(time.perf_counter() - t0, 1), "frames": n_loaded,
         "class_weights": np.round(weights, 3).tolist(),
