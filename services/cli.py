@@ -200,6 +200,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="export the moving average of the weights over the training steps "
                         "(this decay per step, bias-corrected) in place of the last step's, "
                         "which are saved as roadseg-last.pt (default 0: off)")
+    p.add_argument("--average-init", type=float, default=0.0, metavar="WEIGHT",
+                   help="export (1 - WEIGHT) x the trained weights + WEIGHT x --init's (a "
+                        "fine-tune averaged with the model it started from; the trained ones "
+                        "are saved as roadseg-trained.pt; default 0: the trained ones)")
     p.add_argument("--soup", default=None, type=lambda v: v.split(","), metavar="D1,D2",
                    help="one run per junction-line dose (light, heavy: services/segtrain/data.py "
                         "JUNCTIONS), --frames, the budgets or --steps shared out evenly, and "

@@ -50,6 +50,7 @@ def train_command(args, cfg) -> int:
     check_hard_pixels(args.hard_pixels)  # before minutes of rendering
     check_mirror(args.mirror_consistency, args.batch)
     check_ema(args.ema)
+    check_average_init(args.average_init, args.init)
     if args.export_only and not Path(args.export_only).is_file():
         raise ConfigError(f"--export-only {args.export_only}: no such file (a run's roadseg.pt "
                           "or roadseg-last.pt)")
@@ -105,7 +106,8 @@ def train_command(args, cfg) -> int:
                               device=args.device, batch=args.batch, init=args.init,
                               iou_loss=args.iou_loss, arch=args.arch,
                               hard_pixels=args.hard_pixels, mirror=args.mirror_consistency,
-                              ema=args.ema, crop_hw=crop_size(args.crop, frames.shape[1:3]))
+                              ema=args.ema, average_init=args.average_init,
+                              crop_hw=crop_size(args.crop, frames.shape[1:3]))
     del frames, labels  # before the border step renders its own
     result["render_s"] = round(render_s, 1)
     return _finish(args, out, result, t_start)
@@ -172,7 +174,7 @@ def _train_soup(args, out: Path, t_start: float) -> int:
             steps=None if args.steps is None else args.steps // k,
             device=args.device, batch=args.batch, init=args.init, iou_loss=args.iou_loss,
             arch=args.arch, hard_pixels=args.hard_pixels, mirror=args.mirror_consistency,
-            crop_hw=crop_size(args.crop, frames.shape[1:3]))
+            average_init=args.average_init, crop_hw=crop_size(args.crop, frames.shape[1:3]))
         # the held-out arrays are views of this run's frames: copied, so the frames can go
         x_val, y_val, frames_val, labels_val = held_out
         held.append((x_val, y_val, frames_val.copy(), labels_val.copy()))
@@ -189,17 +191,27 @@ def _train_soup(args, out: Path, t_start: float) -> int:
               "render_s": round(render_s, 1),
               **{key: runs[0][key] for key in ("class_weights", "lr_max", "seed", "device",
                                                "batch", "init", "arch", "iou_loss_weight",
-                                               "hard_pixels", "mirror_consistency", "crop_hw")},
+                                               "hard_pixels", "mirror_consistency", "average_init",
+                                               "crop_hw")},
               **exported}
     return _finish(args, out, result, t_start)
 
 
-def average_states(states: list[dict]) -> dict:
-    """The name-by-name mean of state dicts of one architecture (integer buffers, such as
-    batch norms' step counts, from the first)."""
-    return {name: (sum(st[name] for st in states) / len(states)
+def average_states(states: list[dict], weights: list[float] | None = None) -> dict:
+    """The name-by-name mean of state dicts of one architecture, weighted by `weights` (they
+    sum to 1; default equal), integer buffers (batch norms' step counts) from the first."""
+    weights = [1.0 / len(states)] * len(states) if weights is None else weights
+    return {name: (sum(w * st[name] for w, st in zip(weights, states, strict=True))
                    if v.is_floating_point() else v)
             for name, v in states[0].items()}
+
+
+def check_average_init(weight: float, init: str | None) -> None:
+    """--average-init needs --init and a weight in [0, 1) (0: off)."""
+    if not 0.0 <= weight < 1.0:
+        raise ConfigError(f"--average-init {weight:g}: the weight must be in [0, 1) (0: off)")
+    if weight and not init:
+        raise ConfigError("--average-init: averages with --init's weights; give --init")
 
 
 def _calibration_first(held: list[tuple]) -> tuple:
@@ -339,6 +351,7 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
                                   iou_loss=args.iou_loss, arch=args.arch, more=stream.take,
                                   capacity=args.frames, hard_pixels=args.hard_pixels,
                                   mirror=args.mirror_consistency, ema=args.ema,
+                                  average_init=args.average_init,
                                   crop_hw=crop_size(args.crop, frames.shape[1:3]))
     finally:
         stream.close()
@@ -372,6 +385,7 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
         + ([f"--mirror-consistency {args.mirror_consistency:g}"]
            if args.mirror_consistency else [])
         + ([f"--ema {args.ema:g}"] if args.ema else [])
+        + ([f"--average-init {args.average_init:g}"] if args.average_init else [])
         + ([f"--soup {','.join(args.soup)}"] if args.soup else [])
         + ([f"--crop {args.crop}"] if args.crop != DEFAULT_CROP else [])
         + ([] if args.flip_average else ["--no-flip-average"])
@@ -408,7 +422,8 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
                 device: str = "cpu", batch: int = BATCH, init: str | None = None,
                 iou_loss: float = 0.0, arch: str = "s", more=None,
                 capacity: int = 0, crop_hw: tuple[int, int] = CROP_HW,
-                hard_pixels: float = 1.0, mirror: float = 0.0, ema: float = 0.0):
+                hard_pixels: float = 1.0, mirror: float = 0.0, ema: float = 0.0,
+                average_init: float = 0.0):
     """Train RoadSegNet of size `arch` (archs.ARCHS) for train_s seconds (or, with `steps`,
     for exactly that many steps, the schedule spread over them) on `device` (cpu: 2
     threads; cuda: the frames live on the GPU), from scratch or, with `init`, from a trained
@@ -417,7 +432,9 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     pixels with the largest loss: hard_pixel_loss) plus `iou_loss` x soft_jaccard_loss, plus,
     with `mirror` > 0, `mirror` x mirror_consistency_loss (half of each batch mirrors the
     other half); with `ema` > 0, the exported weights are their moving average over the
-    steps (WeightAverage; the last step's are saved as roadseg-last.pt); with `more`
+    steps (WeightAverage; the last step's are saved as roadseg-last.pt); with `average_init`
+    > 0, they are (1 - average_init) x the trained weights + average_init x `init`'s (the
+    trained ones saved as roadseg-trained.pt); with `more`
     (FrameStream.take) frames keep arriving while it trains, up to `capacity` in all;
     batches are random `crop_hw` (H, W) windows of the frames (the whole frame when it is the
     frame's size) -> (the model in eval mode, whether its batch norms were kept frozen, the
@@ -447,6 +464,9 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     weights = class_weights(labels[n_val:])
     model = RoadSegNet(num_classes=seg_data.TRAIN_CLASSES, **ARCHS[arch])
     frozen_norms = _load_init(model, init) if init else False
+    check_average_init(average_init, init)
+    start = ({k: v.detach().clone() for k, v in model.state_dict().items()}
+             if average_init else None)
     model = model.to(dev)
     lr_max = LR_FINETUNE if init else LR_MAX
     opt = torch.optim.AdamW(model.parameters(), lr=lr_max, weight_decay=1e-4)
@@ -508,6 +528,12 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
                                                   model.state_dict().items()},
                     "frozen_norms": frozen_norms}, out / "roadseg-last.pt")
         average.load_into(model)
+    if start is not None:  # a fine-tune averaged with its start ("WiSE-FT")
+        trained = {k: v.cpu() for k, v in model.state_dict().items()}
+        torch.save({"arch": model.arch, "state": trained, "frozen_norms": frozen_norms},
+                   out / "roadseg-trained.pt")
+        model.load_state_dict(average_states([trained, start],
+                                             [1.0 - average_init, average_init]))
     # the held-out frames' first half sets the logit offsets and paint borders (the tensors
     # copied, so the training tensors can go)
     held_out = (x_all[:n_val].clone(), y_all[:n_val].clone(), frames[:n_val], labels[:n_val])
@@ -518,7 +544,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
         "seed": seed, "device": device,
         "batch": batch, "init": init, "lr_max": lr_max,
         "iou_loss_weight": iou_loss, "hard_pixels": hard_pixels, "arch": arch,
-        "mirror_consistency": mirror, "ema": ema,
+        "mirror_consistency": mirror, "ema": ema, "average_init": average_init,
         "crop_hw": list(crop_hw),
     }
 
@@ -1112,7 +1138,7 @@ def model_card(result: dict) -> str:
   `{result.get("device", "cpu")}`, batch {result.get("batch", BATCH)}; {result["steps"]} steps in
   {result["train_s"] / 60:.1f} min after {result.get("render_s", 0) / 60:.1f} min of rendering{
     " (the first frames; rendering went on while it trained)" if result.get("stream") else ""}.{
-    _ema_text(result)}{_soup_text(result)}
+    _ema_text(result)}{_soup_text(result)}{_average_init_text(result)}
   The export is checked against torch with onnxruntime
   (max |diff| {result["onnx_max_abs_diff"]:.1e},
   argmax agreement {result["onnx_argmax_agreement"]:.4f}).
@@ -1202,6 +1228,14 @@ def _ema_text(result: dict) -> str:
     return ("\n  The exported weights are the moving average of every step's (decay "
             f"{result['ema']:g} per step,\n  bias-corrected: WeightAverage), not the last "
             "step's.")
+
+
+def _average_init_text(result: dict) -> str:
+    w = result.get("average_init")
+    if not w:
+        return ""
+    return (f"\n  The exported weights are {1 - w:g} x the trained ones + {w:g} x those of the\n"
+            "  model it started from (`--average-init`: a fine-tune averaged with its start).")
 
 
 def _init_text(result: dict) -> str:

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from common.classes import Cls
+from common.segmentation import DEFAULT_MODEL
 
 torch = pytest.importorskip("torch", reason="training tests need the .[train] extra (torch)")
 
@@ -153,6 +154,45 @@ def test_a_soup_exports_the_average_of_its_runs(tmp_path):
     for name, value in soup.items():
         if value.is_floating_point() and name != "head.bias":
             torch.testing.assert_close(value, (light[name] + heavy[name]) / 2)
+
+
+def test_average_init_exports_the_fine_tune_blended_with_its_start(tmp_path):
+    """--average-init 0.25: the export is 0.75 x the trained weights + 0.25 x --init's (the
+    head's bias aside: the offsets are calibrated on the blend); the trained ones are kept."""
+    from services.cli import main
+    from services.segtrain.archs import ARCHS
+    from services.segtrain.data import TRAIN_CLASSES
+    from services.segtrain.net import RoadSegNet
+    from services.segtrain.train import _load_init
+
+    init = str(DEFAULT_MODEL)
+    out = tmp_path / "wise"
+    assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "24", "--steps", "4",
+                 "--batch", "1", "--workers", "1", "--no-cache", "--init", init,
+                 "--average-init", "0.25"]) == 0
+    log = json.loads((out / "train_log.json").read_text())
+    assert log["average_init"] == 0.25 and "--average-init 0.25" in log["command"]
+    start = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"])
+    assert _load_init(start, init)
+    start = start.state_dict()
+    trained = torch.load(out / "roadseg-trained.pt")["state"]
+    blend = torch.load(out / "roadseg.pt")["state"]
+    assert not torch.equal(trained["stem.0.weight"], start["stem.0.weight"])
+    for name, value in blend.items():
+        if value.is_floating_point() and name != "head.bias":
+            torch.testing.assert_close(value, 0.75 * trained[name] + 0.25 * start[name])
+
+
+def test_average_init_needs_init_and_a_weight_below_one(tmp_path, capsys):
+    from services.cli import main
+
+    out = tmp_path / "out"
+    assert main(["train-seg", "--out", str(out), "--average-init", "0.5"]) == 1
+    assert "--average-init: averages with --init's weights; give --init" in capsys.readouterr().err
+    assert main(["train-seg", "--out", str(out), "--average-init", "1",
+                 "--init", str(DEFAULT_MODEL)]) == 1
+    assert "the weight must be in [0, 1)" in capsys.readouterr().err
+    assert not any(out.iterdir())  # nothing rendered, nothing written
 
 
 def test_bad_soups_are_refused_before_rendering(tmp_path, capsys):
