@@ -203,7 +203,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--average-init", type=float, default=0.0, metavar="WEIGHT",
                    help="export (1 - WEIGHT) x the trained weights + WEIGHT x --init's (a "
                         "fine-tune averaged with the model it started from; the trained ones "
-                        "are saved as roadseg-trained.pt; default 0: the trained ones)")
+                        "are saved as roadseg-trained.pt, with --soup the last run's; default "
+                        "0: the trained ones)")
     p.add_argument("--soup", default=None, type=lambda v: v.split(","), metavar="D1,D2",
                    help="one run per junction-line dose (light, heavy: services/segtrain/data.py "
                         "JUNCTIONS), --frames, the budgets or --steps shared out evenly, and "
