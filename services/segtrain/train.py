@@ -524,14 +524,10 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     model.eval()
     model.crop_rows = None  # whole frames from here on
     if average is not None:  # the last step's weights, for comparing (no logit offsets)
-        torch.save({"arch": model.arch, "state": {k: v.cpu() for k, v in
-                                                  model.state_dict().items()},
-                    "frozen_norms": frozen_norms}, out / "roadseg-last.pt")
+        save_weights(model, frozen_norms, out / "roadseg-last.pt")
         average.load_into(model)
     if start is not None:  # a fine-tune averaged with its start ("WiSE-FT")
-        trained = {k: v.cpu() for k, v in model.state_dict().items()}
-        torch.save({"arch": model.arch, "state": trained, "frozen_norms": frozen_norms},
-                   out / "roadseg-trained.pt")
+        trained = save_weights(model, frozen_norms, out / "roadseg-trained.pt")
         model.load_state_dict(average_states([trained, start],
                                              [1.0 - average_init, average_init]))
     # the held-out frames' first half sets the logit offsets and paint borders (the tensors
@@ -549,6 +545,16 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     }
 
 
+def save_weights(model, frozen_norms: bool, path: Path) -> dict:
+    """Write a model's weights as `--init` and `--export-only` read them (architecture, state
+    on the CPU, whether its batch norms were kept frozen) -> that state."""
+    import torch
+
+    state = {k: v.cpu() for k, v in model.state_dict().items()}
+    torch.save({"arch": model.arch, "state": state, "frozen_norms": frozen_norms}, path)
+    return state
+
+
 def calibrate_and_export(model, x_val, y_val, frames_val: np.ndarray, labels_val: np.ndarray,
                          out: Path, *, seed: int, frozen_norms: bool) -> dict:
     """A trained model (eval mode, whole frames) and its run's held-out frames (x_val, y_val:
@@ -556,8 +562,6 @@ def calibrate_and_export(model, x_val, y_val, frames_val: np.ndarray, labels_val
     arrays): the first half sets the logit offsets (calibrate_bias) and the paint-border
     settings (calibrate_refine), the second half validates; writes out/roadseg.pt and the
     checked out/roadseg.onnx -> what it measured, for the training log."""
-    import torch
-
     from services.segtrain.net import count_parameters
 
     n_cal = len(x_val) // 2
@@ -570,8 +574,7 @@ def calibrate_and_export(model, x_val, y_val, frames_val: np.ndarray, labels_val
     # for fine-tuning (--init); not packaged. Saved with the logit offsets in the head's bias,
     # and whether its batch norms were frozen (a fine-tune of an export: norms folded into the
     # convolutions, running statistics the identity); a fine-tune of this file keeps them so
-    torch.save({"arch": model.arch, "state": model.state_dict(), "frozen_norms": frozen_norms},
-               out / "roadseg.pt")
+    save_weights(model, frozen_norms, out / "roadseg.pt")
     export_onnx(model, model_path, seed=seed)
     max_diff, agree = verify_onnx(model, model_path, x_check)
     refine = calibrate_refine(model_path, frames_val[:n_cal], labels_val[:n_cal])
