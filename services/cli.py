@@ -154,11 +154,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="set the paint-border settings of a trained ONNX model (metadata "
                         "`refine`) on the calibration frames of these rendering settings, and "
                         "stop (done by every training run)")
-    p.add_argument("--export-only", default=None, metavar="PT",
+    p.add_argument("--export-only", default=None, metavar="PT[,PT...]",
                    help="calibrate and export a run's saved weights (roadseg.pt, or an --ema "
                         "run's roadseg-last.pt) as that run would have, on the held-out frames "
-                        "of --seed and --frames (give the run's), with flip averaging and "
-                        "--border-frames, to --out/roadseg.onnx, and stop")
+                        "of --seed and --frames (give the run's; --soup DOSE: of that dose's "
+                        "towns), with flip averaging and --border-frames, to "
+                        "--out/roadseg.onnx, and stop; several runs' weights are averaged name "
+                        "by name first")
     p.add_argument("--border-only", default=None, metavar="MODEL",
                    help="fit the learned paint-border classifier of a trained ONNX model "
                         "(metadata `border_net`) on --frames town frames of --seed (use a seed "

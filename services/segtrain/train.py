@@ -51,9 +51,10 @@ def train_command(args, cfg) -> int:
     check_mirror(args.mirror_consistency, args.batch)
     check_ema(args.ema)
     check_average_init(args.average_init, args.init)
-    if args.export_only and not Path(args.export_only).is_file():
-        raise ConfigError(f"--export-only {args.export_only}: no such file (a run's roadseg.pt "
-                          "or roadseg-last.pt)")
+    for weights in export_weights(args):
+        if not Path(weights).is_file():
+            raise ConfigError(f"--export-only {weights}: no such file (a run's roadseg.pt "
+                              "or roadseg-last.pt)")
     if args.border_seed is None:
         args.border_seed = args.seed + BORDER_SEED_OFFSET
     if args.border_frames and args.border_seed == args.seed:
@@ -76,14 +77,15 @@ def train_command(args, cfg) -> int:
             raise ConfigError("--steps with --stream: streamed frames arrive at the machine's "
                               "pace, so the run would not be reproducible; leave one out")
         return _train_streamed(args, out, t_start)
-    if args.soup:
+    if args.soup and not args.export_only:
         return _train_soup(args, out, t_start)
     render_budget_s = _render_budget_s(args)
     frames, labels = seg_data.training_set(seed=args.seed, input_size=INPUT_SIZE,
                                            budget_s=render_budget_s, max_frames=args.frames,
                                            workers=args.workers, cache=not args.no_cache,
                                            turn_prob=args.turn_prob,
-                                           synth_share=args.synth_share)
+                                           synth_share=args.synth_share,
+                                           junctions=export_junctions(args))
     render_s = time.perf_counter() - t_start
     if args.render_only:
         logger.info("%d training frames rendered in %.0f s (cached)", len(frames), render_s)
@@ -113,14 +115,28 @@ def train_command(args, cfg) -> int:
     return _finish(args, out, result, t_start)
 
 
+def export_weights(args) -> list[str]:
+    """--export-only PT[,PT...]: the saved weights it names (none without it)."""
+    return [w for w in (args.export_only or "").split(",") if w]
+
+
+def export_junctions(args) -> str:
+    """The junction-line dose of one run's frames: --soup DOSE's (with --export-only, the
+    towns of its calibration frames), else light."""
+    return args.soup[0] if args.soup else "light"
+
+
 def check_soup(args) -> None:
-    """--soup: known junction-line doses, and none of the ways of running that it replaces."""
+    """--soup: known junction-line doses, and none of the ways of running that it replaces
+    (with --export-only, one dose: the towns whose held-out frames calibrate the export)."""
     if not args.soup:
         return
     for dose in args.soup:
         seg_data.check_junctions(dose)
+    if args.export_only and len(args.soup) > 1:
+        raise ConfigError(f"--soup {','.join(args.soup)} with --export-only: give one dose, "
+                          "the towns of the held-out frames that calibrate the export")
     clash = [flag for flag, on in (("--stream", args.stream), ("--ema", args.ema),
-                                   ("--export-only", args.export_only),
                                    ("--refine-only", args.refine_only),
                                    ("--render-only", args.render_only)) if on]
     if clash:
@@ -235,14 +251,22 @@ def _export_only(args, out: Path, frames: np.ndarray, labels: np.ndarray) -> int
     an --ema run) calibrated and exported as that run would have (calibrate_and_export on the
     held-out frames of these rendering settings, flip averaging, --border-frames) to
     --out/roadseg.onnx; the log goes to --out/export_log.json. With the run's --seed and
-    --frames, the held-out frames are the run's: an --ema run's two weights, compared alike."""
+    --frames (and --soup DOSE for a run on that dose's towns), the held-out frames are the
+    run's: an --ema run's two weights, compared alike. --export-only PT1,PT2,...: the runs'
+    weights averaged name by name first (a soup of finished runs of one architecture)."""
     import torch
 
     from services.segtrain.net import RoadSegNet
 
-    saved = torch.load(args.export_only, map_location="cpu")
+    paths = export_weights(args)
+    members = [torch.load(p, map_location="cpu") for p in paths]
+    saved = members[0]
+    for path, member in zip(paths[1:], members[1:], strict=True):
+        if member["arch"] != saved["arch"] or member.keys() != saved.keys():
+            raise ConfigError(f"--export-only: {path} is not of {paths[0]}'s architecture "
+                              f"({member['arch']} against {saved['arch']})")
     model = RoadSegNet(num_classes=seg_data.TRAIN_CLASSES, **saved["arch"])
-    model.load_state_dict(saved["state"])
+    model.load_state_dict(average_states([m["state"] for m in members]))
     model.eval()  # every batch norm on its running statistics, frozen or not
     n_val = validation_frames(len(frames))
     x_val = torch.from_numpy(frames[:n_val]).permute(0, 3, 1, 2)
@@ -250,6 +274,7 @@ def _export_only(args, out: Path, frames: np.ndarray, labels: np.ndarray) -> int
     log = calibrate_and_export(model, x_val, y_val, frames[:n_val], labels[:n_val], out,
                                seed=args.seed, frozen_norms=bool(saved.get("frozen_norms")))
     log.update(_flip_and_border(args, out), weights=str(args.export_only), seed=args.seed,
+               junctions=export_junctions(args),
                frames=n_val)
     (out / "export_log.json").write_text(json.dumps(log, indent=2))
     logger.info("%s -> %s: %s", args.export_only, out / "roadseg.onnx", log)

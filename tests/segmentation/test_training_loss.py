@@ -205,6 +205,11 @@ def test_bad_soups_are_refused_before_rendering(tmp_path, capsys):
     assert "--soup with --ema: leave one out" in capsys.readouterr().err
     assert main(["train-seg", "--out", str(out), "--soup", "light,heavy", "--frames", "10"]) == 1
     assert "leaves under 8 frames" in capsys.readouterr().err
+    weights = tmp_path / "weights.pt"
+    weights.write_bytes(b"")
+    assert main(["train-seg", "--out", str(out), "--soup", "light,heavy",
+                 "--export-only", str(weights)]) == 1
+    assert "with --export-only: give one dose" in capsys.readouterr().err
     assert not any(out.iterdir())  # nothing rendered, nothing written
 
 
@@ -268,6 +273,36 @@ def test_an_ema_run_exports_the_average_and_its_last_weights_export_as_a_plain_r
     assert (ema / "roadseg.onnx").read_bytes() != (plain / "roadseg.onnx").read_bytes()
     exported = json.loads((last / "export_log.json").read_text())
     assert exported["weights"].endswith("roadseg-last.pt") and exported["flip_average"]
+
+
+def test_an_export_of_several_runs_is_the_export_of_their_averaged_weights(tmp_path, capsys):
+    """--export-only A,B: the runs' weights averaged name by name, then exported as one run's
+    (byte for byte the export of that average saved by hand); --soup DOSE calibrates on that
+    dose's held-out frames, as a --soup DOSE run does (its own export, byte for byte)."""
+    from services.cli import main
+    from services.segtrain.train import average_states
+
+    run = ["--frames", "16", "--steps", "20", "--batch", "1", "--workers", "1", "--no-cache",
+           "--soup", "heavy"]
+    for name, seed in (("a", "5"), ("b", "6")):
+        assert main(["train-seg", "--out", str(tmp_path / name), "--seed", seed, *run]) == 0
+    a, b = (torch.load(tmp_path / n / "roadseg.pt") for n in ("a", "b"))
+    torch.save({**a, "state": average_states([a["state"], b["state"]])}, tmp_path / "ab.pt")
+    pts = f"{tmp_path / 'a' / 'roadseg.pt'},{tmp_path / 'b' / 'roadseg.pt'}"
+    for name, weights in (("again", str(tmp_path / "a" / "roadseg.pt")), ("soup", pts),
+                          ("by-hand", str(tmp_path / "ab.pt"))):
+        assert main(["train-seg", "--out", str(tmp_path / name), "--seed", "5", *run,
+                     "--export-only", weights]) == 0
+    exported = {n: (tmp_path / n / "roadseg.onnx").read_bytes()
+                for n in ("a", "again", "soup", "by-hand")}
+    assert exported["again"] == exported["a"]
+    assert exported["soup"] == exported["by-hand"] != exported["a"]
+    log = json.loads((tmp_path / "soup" / "export_log.json").read_text())
+    assert log["weights"] == pts and log["junctions"] == "heavy"
+    torch.save({**a, "arch": {**a["arch"], "widths": [8, 16, 32, 64]}}, tmp_path / "other.pt")
+    assert main(["train-seg", "--out", str(tmp_path / "bad"), "--seed", "5", *run,
+                 "--export-only", f"{pts},{tmp_path / 'other.pt'}"]) == 1
+    assert "is not of" in capsys.readouterr().err
 
 
 def test_a_bad_ema_decay_is_refused_before_rendering(tmp_path, capsys):
