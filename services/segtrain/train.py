@@ -79,6 +79,7 @@ def train_command(args, cfg) -> int:
         return _train_streamed(args, out, t_start)
     if args.soup and not args.export_only:
         return _train_soup(args, out, t_start)
+    members = load_export_members(args)  # before minutes of rendering
     render_budget_s = _render_budget_s(args)
     frames, labels = seg_data.training_set(seed=args.seed, input_size=INPUT_SIZE,
                                            budget_s=render_budget_s, max_frames=args.frames,
@@ -91,7 +92,7 @@ def train_command(args, cfg) -> int:
         logger.info("%d training frames rendered in %.0f s (cached)", len(frames), render_s)
         return 0
     if args.export_only:
-        return _export_only(args, out, frames, labels)
+        return _export_only(args, out, frames, labels, members)
     if args.refine_only:  # the calibration frames a training run on these frames would use
         n_cal = validation_frames(len(frames)) // 2
         refine = calibrate_refine(args.refine_only, frames[:n_cal], labels[:n_cal])
@@ -118,6 +119,23 @@ def train_command(args, cfg) -> int:
 def export_weights(args) -> list[str]:
     """--export-only PT[,PT...]: the saved weights it names (none without it)."""
     return [w for w in (args.export_only or "").split(",") if w]
+
+
+def load_export_members(args) -> list[dict]:
+    """--export-only's saved weights (none without it), each a run's {arch, state,
+    frozen_norms}; refused unless all are of the first's architecture."""
+    if not args.export_only:
+        return []
+    import torch
+
+    paths = export_weights(args)
+    members = [torch.load(p, map_location="cpu") for p in paths]
+    first = members[0]
+    for path, member in zip(paths[1:], members[1:], strict=True):
+        if member["arch"] != first["arch"] or member.keys() != first.keys():
+            raise ConfigError(f"--export-only: {path} is not of {paths[0]}'s architecture "
+                              f"({member['arch']} against {first['arch']})")
+    return members
 
 
 def export_junctions(args) -> str:
@@ -246,7 +264,8 @@ def _calibration_first(held: list[tuple]) -> tuple:
     return tuple(joined)
 
 
-def _export_only(args, out: Path, frames: np.ndarray, labels: np.ndarray) -> int:
+def _export_only(args, out: Path, frames: np.ndarray, labels: np.ndarray,
+                 members: list[dict]) -> int:
     """--export-only PT: a training run's saved weights (roadseg.pt, or the roadseg-last.pt of
     an --ema run) calibrated and exported as that run would have (calibrate_and_export on the
     held-out frames of these rendering settings, flip averaging, --border-frames) to
@@ -258,13 +277,7 @@ def _export_only(args, out: Path, frames: np.ndarray, labels: np.ndarray) -> int
 
     from services.segtrain.net import RoadSegNet
 
-    paths = export_weights(args)
-    members = [torch.load(p, map_location="cpu") for p in paths]
-    saved = members[0]
-    for path, member in zip(paths[1:], members[1:], strict=True):
-        if member["arch"] != saved["arch"] or member.keys() != saved.keys():
-            raise ConfigError(f"--export-only: {path} is not of {paths[0]}'s architecture "
-                              f"({member['arch']} against {saved['arch']})")
+    saved = members[0]  # load_export_members: all of its architecture
     model = RoadSegNet(num_classes=seg_data.TRAIN_CLASSES, **saved["arch"])
     model.load_state_dict(average_states([m["state"] for m in members]))
     model.eval()  # every batch norm on its running statistics, frozen or not

@@ -303,6 +303,7 @@ def test_an_export_of_several_runs_is_the_export_of_their_averaged_weights(tmp_p
     assert main(["train-seg", "--out", str(tmp_path / "bad"), "--seed", "5", *run,
                  "--export-only", f"{pts},{tmp_path / 'other.pt'}"]) == 1
     assert "is not of" in capsys.readouterr().err
+    assert not any((tmp_path / "bad").iterdir())  # refused before rendering
 
 
 def test_a_bad_ema_decay_is_refused_before_rendering(tmp_path, capsys):
