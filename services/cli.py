@@ -207,6 +207,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "fine-tune averaged with the model it started from; the trained ones "
                         "are saved as roadseg-trained.pt, with --soup the last run's; default "
                         "0: the trained ones)")
+    p.add_argument("--distill", type=float, default=0.0, metavar="WEIGHT",
+                   help="add WEIGHT x the cross-entropy against --init's flip-averaged class "
+                        "probabilities (the teacher, frozen) to the loss, so that one pass "
+                        "learns what the runtime's two passes decide (default 0: off)")
     p.add_argument("--soup", default=None, type=lambda v: v.split(","), metavar="D1,D2",
                    help="one run per junction-line dose (light, heavy: services/segtrain/data.py "
                         "JUNCTIONS), --frames, the budgets or --steps shared out evenly, and "

@@ -51,6 +51,7 @@ def train_command(args, cfg) -> int:
     check_mirror(args.mirror_consistency, args.batch)
     check_ema(args.ema)
     check_average_init(args.average_init, args.init)
+    check_distill(args.distill, args.init, args.crop == "full" and not args.stream)
     for weights in export_weights(args):
         if not Path(weights).is_file():
             raise ConfigError(f"--export-only {weights}: no such file (a run's roadseg.pt "
@@ -110,6 +111,7 @@ def train_command(args, cfg) -> int:
                               iou_loss=args.iou_loss, arch=args.arch,
                               hard_pixels=args.hard_pixels, mirror=args.mirror_consistency,
                               ema=args.ema, average_init=args.average_init,
+                              distill=args.distill,
                               crop_hw=crop_size(args.crop, frames.shape[1:3]))
     del frames, labels  # before the border step renders its own
     result["render_s"] = round(render_s, 1)
@@ -208,7 +210,8 @@ def _train_soup(args, out: Path, t_start: float) -> int:
             steps=None if args.steps is None else args.steps // k,
             device=args.device, batch=args.batch, init=args.init, iou_loss=args.iou_loss,
             arch=args.arch, hard_pixels=args.hard_pixels, mirror=args.mirror_consistency,
-            average_init=args.average_init, crop_hw=crop_size(args.crop, frames.shape[1:3]))
+            average_init=args.average_init, distill=args.distill,
+            crop_hw=crop_size(args.crop, frames.shape[1:3]))
         # the held-out arrays are views of this run's frames: copied, so the frames can go
         x_val, y_val, frames_val, labels_val = held_out
         held.append((x_val, y_val, frames_val.copy(), labels_val.copy()))
@@ -226,7 +229,7 @@ def _train_soup(args, out: Path, t_start: float) -> int:
               **{key: runs[0][key] for key in ("class_weights", "lr_max", "seed", "device",
                                                "batch", "init", "arch", "iou_loss_weight",
                                                "hard_pixels", "mirror_consistency", "average_init",
-                                               "crop_hw")},
+                                               "distill", "crop_hw")},
               **exported}
     return _finish(args, out, result, t_start)
 
@@ -389,7 +392,7 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
                                   iou_loss=args.iou_loss, arch=args.arch, more=stream.take,
                                   capacity=args.frames, hard_pixels=args.hard_pixels,
                                   mirror=args.mirror_consistency, ema=args.ema,
-                                  average_init=args.average_init,
+                                  average_init=args.average_init, distill=args.distill,
                                   crop_hw=crop_size(args.crop, frames.shape[1:3]))
     finally:
         stream.close()
@@ -424,6 +427,7 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
            if args.mirror_consistency else [])
         + ([f"--ema {args.ema:g}"] if args.ema else [])
         + ([f"--average-init {args.average_init:g}"] if args.average_init else [])
+        + ([f"--distill {args.distill:g}"] if args.distill else [])
         + ([f"--soup {','.join(args.soup)}"] if args.soup else [])
         + ([f"--crop {args.crop}"] if args.crop != DEFAULT_CROP else [])
         + ([] if args.flip_average else ["--no-flip-average"])
@@ -461,7 +465,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
                 iou_loss: float = 0.0, arch: str = "s", more=None,
                 capacity: int = 0, crop_hw: tuple[int, int] = CROP_HW,
                 hard_pixels: float = 1.0, mirror: float = 0.0, ema: float = 0.0,
-                average_init: float = 0.0):
+                average_init: float = 0.0, distill: float = 0.0):
     """Train RoadSegNet of size `arch` (archs.ARCHS) for train_s seconds (or, with `steps`,
     for exactly that many steps, the schedule spread over them) on `device` (cpu: 2
     threads; cuda: the frames live on the GPU), from scratch or, with `init`, from a trained
@@ -472,7 +476,9 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     other half); with `ema` > 0, the exported weights are their moving average over the
     steps (WeightAverage; the last step's are saved as roadseg-last.pt); with `average_init`
     > 0, they are (1 - average_init) x the trained weights + average_init x `init`'s (the
-    trained ones saved as roadseg-trained.pt); with `more`
+    trained ones saved as roadseg-trained.pt); with `distill` > 0, `distill` x the
+    class-weighted cross-entropy against `init`'s flip-averaged class probabilities joins the
+    loss (distillation_loss); with `more`
     (FrameStream.take) frames keep arriving while it trains, up to `capacity` in all;
     batches are random `crop_hw` (H, W) windows of the frames (the whole frame when it is the
     frame's size) -> (the model in eval mode, whether its batch norms were kept frozen, the
@@ -505,7 +511,14 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     check_average_init(average_init, init)
     start = ({k: v.detach().clone() for k, v in model.state_dict().items()}
              if average_init else None)
+    check_distill(distill, init, more is None and tuple(crop_hw) == tuple(frames.shape[1:3]))
     model = model.to(dev)
+    targets = None
+    if distill:
+        t_teach = time.perf_counter()
+        targets = teacher_logits(_frozen_copy(model), x_all[:n_loaded])
+        logger.info("teacher's flip-averaged logits of %d frames in %.0f s", n_loaded,
+                    time.perf_counter() - t_teach)
     lr_max = LR_FINETUNE if init else LR_MAX
     opt = torch.optim.AdamW(model.parameters(), lr=lr_max, weight_decay=1e-4)
     check_hard_pixels(hard_pixels)
@@ -537,7 +550,10 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
         idx = torch.from_numpy(rng.integers(n_val, n_loaded, n_drawn)).to(dev)
         xb, yb, top = _crop_batch(x_all[idx], y_all[idx], rng, crop_hw)
         model.crop_rows = (top, x_all.shape[2])
-        xb, yb = augment(xb, yb.long(), rng)
+        if targets is None:
+            xb, yb = augment(xb, yb.long(), rng)
+        else:
+            xb, yb, tb = augment(xb, yb.long(), rng, extra=targets[idx])
         if mirror:  # each frame and its mirror image, with the same photometric draw
             xb, yb = torch.cat([xb, xb.flip(-1)]), torch.cat([yb, yb.flip(-1)])
         logits = model(xb)
@@ -547,6 +563,8 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
             loss = loss + iou_loss * soft_jaccard_loss(logits, yb)
         if mirror:
             loss = loss + mirror * mirror_consistency_loss(logits)
+        if targets is not None:
+            loss = loss + distill * distillation_loss(logits, tb, yb, class_w)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -579,7 +597,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
         "batch": batch, "init": init, "lr_max": lr_max,
         "iou_loss_weight": iou_loss, "hard_pixels": hard_pixels, "arch": arch,
         "mirror_consistency": mirror, "ema": ema, "average_init": average_init,
-        "crop_hw": list(crop_hw),
+        "distill": distill, "crop_hw": list(crop_hw),
     }
 
 
@@ -765,6 +783,71 @@ def mirror_consistency_loss(logits):
     return kl.mean()
 
 
+def check_distill(weight: float, init: str | None, whole_frames: bool = True) -> None:
+    """--distill needs --init (the teacher), a weight >= 0 (0: off) and whole frames (the
+    teacher's outputs are computed once per frame)."""
+    if weight < 0:
+        raise ConfigError(f"--distill {weight:g}: the weight must be >= 0 (0: off)")
+    if weight and not init:
+        raise ConfigError("--distill: distils --init's flip-averaged output; give --init")
+    if weight and not whole_frames:
+        raise ConfigError("--distill needs whole frames: give --crop full, and no --stream")
+
+
+def _frozen_copy(model):
+    """A copy of `model` in eval mode with no gradients (a teacher)."""
+    import copy
+
+    teacher = copy.deepcopy(model).eval()
+    for p in teacher.parameters():
+        p.requires_grad_(False)
+    return teacher
+
+
+def teacher_logits(teacher, x_u8, batch: int = 8):
+    """The teacher's flip-averaged logits at its output resolution (1/2) for uint8 frames
+    (N, 3, H, W): the mean of its logits on each frame and, mirrored back, on the frame's
+    mirror image, what the runtime's flip averaging decides from -> float16 (N, C, H/2, W/2)
+    on the frames' device (0.8 MB a 640x360 frame). Computed once per run on the frames
+    before augmentation: a third of the passes of computing them per batch."""
+    import torch
+
+    half_res, teacher.half_res_logits = teacher.half_res_logits, True
+    try:
+        out = None  # filled in place: the logits of 4800 frames take 3.9 GB
+        with torch.no_grad():
+            for i in range(0, len(x_u8), batch):
+                x = x_u8[i:i + batch].float() / 255.0
+                logits = 0.5 * (teacher(x) + teacher(x.flip(-1)).flip(-1))
+                if out is None:
+                    out = torch.empty((len(x_u8),) + logits.shape[1:], dtype=torch.float16,
+                                      device=logits.device)
+                out[i:i + batch] = logits
+        return out
+    finally:
+        teacher.half_res_logits = half_res
+
+
+def distillation_loss(logits, target_logits, y, class_w):
+    """Cross-entropy of the student's logits (N, C, H, W) against the class probabilities of
+    the teacher's logits (N, C, h, w; upsampled bilinearly as the student's are), each pixel
+    weighted by its true class's weight (as the labels' cross-entropy is) and averaged by the
+    weights' sum.
+
+    Why (2026-11-27): flip averaging, a second network pass, is worth +0.011 of held-out lane
+    line; a student started from the teacher and pulled towards its flip-averaged output may
+    carry some of that in one pass (MODEL_CARD), where a consistency term between a frame and
+    its mirror (--mirror-consistency) did not."""
+    import torch
+    from torch.nn import functional as F
+
+    target = F.interpolate(target_logits.float(), size=logits.shape[-2:], mode="bilinear",
+                           align_corners=False)
+    per_px = -(torch.softmax(target, 1) * torch.log_softmax(logits, 1)).sum(1)
+    w = class_w[y]
+    return (per_px * w).sum() / w.sum()
+
+
 def check_hard_pixels(share: float) -> None:
     if not 0.0 < share <= 1.0:
         raise ConfigError(f"--hard-pixels must be a share in (0, 1], got {share}")
@@ -948,9 +1031,11 @@ def _crop_batch(x, y, rng, crop_hw=CROP_HW):
     return x[:, :, top:top + h, left:left + w], y[:, top:top + h, left:left + w], top
 
 
-def augment(x_u8, y, rng):
+def augment(x_u8, y, rng, extra=None):
     """Photometric augmentation on a uint8 batch -> float [0, 1]: brightness, contrast, colour
-    cast, gamma, blur, noise; plus horizontal flips (paint classes are mirror-invariant)."""
+    cast, gamma, blur, noise; plus horizontal flips (paint classes are mirror-invariant) ->
+    (images, labels), and `extra` (N, C, h, w: e.g. a teacher's logits) flipped with them as
+    a third when given (the random draws are the same either way)."""
     import torch
     from torch.nn import functional as F
 
@@ -974,7 +1059,11 @@ def augment(x_u8, y, rng):
     x[flip] = x[flip].flip(-1)
     y = y.clone()
     y[flip] = y[flip].flip(-1)
-    return x.clamp(0.0, 1.0), y
+    if extra is None:
+        return x.clamp(0.0, 1.0), y
+    extra = extra.clone()
+    extra[flip] = extra[flip].flip(-1)
+    return x.clamp(0.0, 1.0), y, extra
 
 
 def _gauss_kernel(sigma: float) -> np.ndarray:

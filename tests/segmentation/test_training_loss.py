@@ -1,5 +1,6 @@
-"""The training loss's soft-Jaccard term, hard-pixel cross-entropy and mirror consistency, and
-the moving average of the weights (needs the optional torch extra: `.[train]`)."""
+"""The training loss's soft-Jaccard term, hard-pixel cross-entropy, mirror consistency and
+distillation from a teacher, and the moving average of the weights (needs the optional torch
+extra: `.[train]`)."""
 
 import json
 
@@ -13,6 +14,7 @@ torch = pytest.importorskip("torch", reason="training tests need the .[train] ex
 
 from services.segtrain.train import (  # noqa: E402
     WeightAverage,
+    distillation_loss,
     hard_pixel_loss,
     mirror_consistency_loss,
     soft_jaccard_loss,
@@ -312,3 +314,71 @@ def test_a_bad_ema_decay_is_refused_before_rendering(tmp_path, capsys):
     assert main(["train-seg", "--out", str(tmp_path), "--ema", "1"]) == 1
     assert "--ema 1: the decay must be in [0, 1)" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
+
+
+def test_distillation_costs_least_where_the_student_says_what_the_teacher_says():
+    """Cross-entropy against the teacher's probabilities is smallest at the teacher's own
+    logits (Gibbs), whatever the labels, and the labels' class weights weigh the pixels."""
+    gen = torch.Generator().manual_seed(0)
+    teacher = torch.randn(2, CLASSES, 8, 16, generator=gen)  # at 1/2 resolution
+    up = torch.nn.functional.interpolate(teacher, size=(16, 32), mode="bilinear",
+                                         align_corners=False)
+    y = torch.randint(0, CLASSES, (2, 16, 32), generator=gen)
+    w = torch.ones(CLASSES)
+    own = float(distillation_loss(up, teacher.half(), y, w))
+    for _ in range(5):
+        other = up + 0.5 * torch.randn(up.shape, generator=gen)
+        assert float(distillation_loss(other, teacher.half(), y, w)) > own
+    entropy = float(-(up.softmax(1) * up.log_softmax(1)).sum(1).mean())
+    assert own == pytest.approx(entropy, abs=0.02)  # float16 targets
+    heavy = w.clone()
+    heavy[int(Cls.LANE_LINE)] = 6.0
+    only_lines = torch.full_like(y, int(Cls.LANE_LINE))
+    assert float(distillation_loss(up, teacher, only_lines, heavy)) == pytest.approx(
+        float(distillation_loss(up, teacher, only_lines, w)))  # a weighted mean
+
+
+def test_teacher_logits_are_the_flip_average_at_half_resolution():
+    from services.segtrain.archs import ARCHS
+    from services.segtrain.net import RoadSegNet
+    from services.segtrain.train import _frozen_copy, teacher_logits
+
+    torch.manual_seed(0)
+    teacher = _frozen_copy(RoadSegNet(num_classes=CLASSES, **ARCHS["s"]))
+    x = torch.randint(0, 256, (3, 3, 64, 96), dtype=torch.uint8)
+    got = teacher_logits(teacher, x, batch=2)
+    assert got.dtype == torch.float16 and got.shape == (3, CLASSES, 32, 48)
+    assert not teacher.half_res_logits  # the teacher is left as it was
+    teacher.half_res_logits = True
+    with torch.no_grad():
+        f = x.float() / 255.0
+        want = 0.5 * (teacher(f) + teacher(f.flip(-1)).flip(-1))
+    torch.testing.assert_close(got.float(), want, atol=2e-2, rtol=1e-2)
+
+
+def test_a_distilled_run_trains_towards_its_init_and_says_so(tmp_path):
+    from services.cli import main
+
+    out = tmp_path / "distil"
+    assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "24", "--steps", "4",
+                 "--batch", "2", "--workers", "1", "--no-cache", "--init", str(DEFAULT_MODEL),
+                 "--crop", "full", "--distill", "1", "--no-flip-average"]) == 0
+    log = json.loads((out / "train_log.json").read_text())
+    assert log["distill"] == 1.0 and "--distill 1" in log["command"]
+    assert log["steps"] == 4 and np.isfinite(log["final_loss"])
+
+
+def test_distillation_needs_a_teacher_and_whole_frames(tmp_path, capsys):
+    from services.cli import main
+
+    out = tmp_path / "out"
+    assert main(["train-seg", "--out", str(out), "--distill", "1", "--crop", "full"]) == 1
+    assert "--distill: distils --init's flip-averaged output; give --init" in (
+        capsys.readouterr().err)
+    assert main(["train-seg", "--out", str(out), "--distill", "1",
+                 "--init", str(DEFAULT_MODEL)]) == 1  # random crops by default
+    assert "--distill needs whole frames" in capsys.readouterr().err
+    assert main(["train-seg", "--out", str(out), "--distill", "-1", "--crop", "full",
+                 "--init", str(DEFAULT_MODEL)]) == 1
+    assert "must be >= 0" in capsys.readouterr().err
+    assert not any(out.iterdir())  # nothing rendered, nothing written
