@@ -31,7 +31,7 @@ same frames, and `baseline.diff` (and each world's) is the model's IoU minus the
 with a paired bootstrap interval (`diff_ci90`: both scored on each draw of frames), to compare
 two training recipes far more finely than their own intervals allow. That interval covers the
 frames, not the training: two seeds of one recipe differed by 0.006 in mean lane line with a
-paired interval of [-0.009, -0.003] (MODEL_CARD.md), so compare recipes over seeds."""
+paired interval of [-0.009, -0.003] (common/models/HISTORY.md), so compare recipes over seeds."""
 
 import argparse
 import json

@@ -96,7 +96,7 @@ class SegmentationConfig:
     # rows above the rays that rise this many degrees above level (from the camera's
     # calibration) show no road and are not run through the network (labelled none); < 0:
     # every row is segmented. 10: the top 48 of 360 rows of the default camera, 2.6 ms a
-    # frame less; the benchmark's IoU moved by 0.0015 or less (common/models/MODEL_CARD.md)
+    # frame less; the benchmark's IoU moved by 0.0015 or less (common/models/HISTORY.md)
     sky_margin_deg: float = 10.0
     # paint borders decided by the model's learned border classifier (metadata `border_net`,
     # common.segmentation.BorderNet), if it has one, instead of its brightness rule
@@ -105,7 +105,7 @@ class SegmentationConfig:
     border_net: bool = True
     # the network also run on the mirror image and the two averaged, when the model's
     # metadata asks for it (`flip_average`; the packaged model does): on the benchmark's
-    # frames +0.011 mean lane-line IoU, for ~5 ms a frame more (common/models/MODEL_CARD.md);
+    # frames +0.011 mean lane-line IoU, for ~5 ms a frame more (common/models/HISTORY.md);
     # false: one run a frame
     flip_average: bool = True
 

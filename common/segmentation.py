@@ -457,7 +457,7 @@ class BorderNet:
     `spec` (the model's metadata `border_net`): {"layers": [{"w": (in, out) nested lists, "b":
     (out,)}, ...], "max_margin": logits (optional: border pixels the network is surer of keep
     its label)}. About 2-3 ms a 640x360 road frame (a few thousand border pixels): 1.3 ms
-    more than refine_paint_borders at p50, 2.2 ms at p95 (common/models/MODEL_CARD.md)."""
+    more than refine_paint_borders at p50, 2.2 ms at p95 (common/models/HISTORY.md)."""
 
     def __init__(self, spec: dict):
         try:

@@ -187,7 +187,7 @@ def _train_soup(args, out: Path, t_start: float) -> int:
     average, at one network's cost), calibrated on the runs' held-out frames and exported as
     one run's would be.
 
-    Why (2026-11-26, MODEL_CARD evening section): two full runs of the recipe, one on light
+    Why (2026-11-26, HISTORY.md, the evening section): two full runs of the recipe, one on light
     and one on heavy junction lines, averaged, scored mean lane line 0.001-0.003 above their
     mean (runs J1 + J2, run SH); averaging runs of the same towns gave less. Members of half a
     run each (the recipe's hour shared out) scored 0.005 below one full run: the soup pays
@@ -768,7 +768,7 @@ def mirror_consistency_loss(logits):
     """Logits (2n, C, H, W) of n frames then their n mirror images -> the mean over pixels of
     KL(m || p) + KL(m || q), where p is a frame's class distribution, q its mirror's mirrored
     back, and m = (p + q) / 2 held fixed: both are pulled towards their average, as a
-    mirrored second pass averaged in at test time would do (MODEL_CARD: +0.014 held-out lane
+    mirrored second pass averaged in at test time would do (HISTORY.md: +0.014 held-out lane
     line for a second pass), so that one pass may carry some of it."""
     import torch
     from torch.nn import functional as F
@@ -836,7 +836,7 @@ def distillation_loss(logits, target_logits, y, class_w):
 
     Why (2026-11-27): flip averaging, a second network pass, is worth +0.011 of held-out lane
     line; a student started from the teacher and pulled towards its flip-averaged output may
-    carry some of that in one pass (MODEL_CARD), where a consistency term between a frame and
+    carry some of that in one pass (HISTORY.md), where a consistency term between a frame and
     its mirror (--mirror-consistency) did not."""
     import torch
     from torch.nn import functional as F
