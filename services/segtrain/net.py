@@ -97,9 +97,9 @@ class RoadSegNet(nn.Module):
         if self.rows3 is not None:
             f3 = f3 + self.rows3(_row_features(f3, 16, row0, full_h))
         f3 = self.context(f3)
-        d2 = self.dec2(torch.cat([_up(f3, f2), f2], 1))
-        d1 = self.dec1(torch.cat([_up(d2, f1), f1], 1))
-        d0 = self.dec0(torch.cat([_up(d1, f0), f0], 1))
+        d2 = self.dec2(torch.cat([upsample_like(f3, f2), f2], 1))
+        d1 = self.dec1(torch.cat([upsample_like(d2, f1), f1], 1))
+        d0 = self.dec0(torch.cat([upsample_like(d1, f0), f0], 1))
         logits = self.head(d0)
         s2 = self.subpixel ** 2
         if s2 > 1:  # (N, C * s2, h, w) -> (N, C, s2, h, w): folded per sub-pixel below
@@ -111,7 +111,7 @@ class RoadSegNet(nn.Module):
         if s2 > 1:
             logits = logits.flatten(1, 2)
             return logits if self.half_res_logits else F.pixel_shuffle(logits, self.subpixel)
-        return logits if self.half_res_logits else _up(logits, x)
+        return logits if self.half_res_logits else upsample_like(logits, x)
 
 
 def _row_features(f, stride: int, row0: int, full_h: int):
@@ -121,7 +121,8 @@ def _row_features(f, stride: int, row0: int, full_h: int):
     return torch.cat([r, r * r], 1)
 
 
-def _up(x, like):
+def upsample_like(x, like):
+    """x resized bilinearly (half-pixel centres) to the height and width of `like`."""
     return F.interpolate(x, size=like.shape[-2:], mode="bilinear", align_corners=False)
 
 

@@ -839,10 +839,10 @@ def distillation_loss(logits, target_logits, y, class_w):
     carry some of that in one pass (HISTORY.md), where a consistency term between a frame and
     its mirror (--mirror-consistency) did not."""
     import torch
-    from torch.nn import functional as F
 
-    target = F.interpolate(target_logits.float(), size=logits.shape[-2:], mode="bilinear",
-                           align_corners=False)
+    from services.segtrain.net import upsample_like  # the student's own upsampling
+
+    target = upsample_like(target_logits.float(), logits)
     per_px = -(torch.softmax(target, 1) * torch.log_softmax(logits, 1)).sum(1)
     w = class_w[y]
     return (per_px * w).sum() / w.sum()
