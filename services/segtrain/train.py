@@ -111,7 +111,7 @@ def train_command(args, cfg) -> int:
                               iou_loss=args.iou_loss, arch=args.arch,
                               hard_pixels=args.hard_pixels, mirror=args.mirror_consistency,
                               ema=args.ema, average_init=args.average_init,
-                              distill=args.distill,
+                              distill=args.distill, bf16=args.bf16,
                               crop_hw=crop_size(args.crop, frames.shape[1:3]))
     del frames, labels  # before the border step renders its own
     result["render_s"] = round(render_s, 1)
@@ -210,7 +210,7 @@ def _train_soup(args, out: Path, t_start: float) -> int:
             steps=None if args.steps is None else args.steps // k,
             device=args.device, batch=args.batch, init=args.init, iou_loss=args.iou_loss,
             arch=args.arch, hard_pixels=args.hard_pixels, mirror=args.mirror_consistency,
-            average_init=args.average_init, distill=args.distill,
+            average_init=args.average_init, distill=args.distill, bf16=args.bf16,
             crop_hw=crop_size(args.crop, frames.shape[1:3]))
         # the held-out arrays are views of this run's frames: copied, so the frames can go
         x_val, y_val, frames_val, labels_val = held_out
@@ -229,7 +229,7 @@ def _train_soup(args, out: Path, t_start: float) -> int:
               **{key: runs[0][key] for key in ("class_weights", "lr_max", "seed", "device",
                                                "batch", "init", "arch", "iou_loss_weight",
                                                "hard_pixels", "mirror_consistency", "average_init",
-                                               "distill", "crop_hw")},
+                                               "distill", "bf16", "crop_hw")},
               **exported}
     return _finish(args, out, result, t_start)
 
@@ -393,6 +393,7 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
                                   capacity=args.frames, hard_pixels=args.hard_pixels,
                                   mirror=args.mirror_consistency, ema=args.ema,
                                   average_init=args.average_init, distill=args.distill,
+                                  bf16=args.bf16,
                                   crop_hw=crop_size(args.crop, frames.shape[1:3]))
     finally:
         stream.close()
@@ -428,6 +429,7 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
         + ([f"--ema {args.ema:g}"] if args.ema else [])
         + ([f"--average-init {args.average_init:g}"] if args.average_init else [])
         + ([f"--distill {args.distill:g}"] if args.distill else [])
+        + (["--bf16"] if args.bf16 else [])
         + ([f"--soup {','.join(args.soup)}"] if args.soup else [])
         + ([f"--crop {args.crop}"] if args.crop != DEFAULT_CROP else [])
         + ([] if args.flip_average else ["--no-flip-average"])
@@ -465,7 +467,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
                 iou_loss: float = 0.0, arch: str = "s", more=None,
                 capacity: int = 0, crop_hw: tuple[int, int] = CROP_HW,
                 hard_pixels: float = 1.0, mirror: float = 0.0, ema: float = 0.0,
-                average_init: float = 0.0, distill: float = 0.0):
+                average_init: float = 0.0, distill: float = 0.0, bf16: bool = False):
     """Train RoadSegNet of size `arch` (archs.ARCHS) for train_s seconds (or, with `steps`,
     for exactly that many steps, the schedule spread over them) on `device` (cpu: 2
     threads; cuda: the frames live on the GPU), from scratch or, with `init`, from a trained
@@ -478,7 +480,8 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     > 0, they are (1 - average_init) x the trained weights + average_init x `init`'s (the
     trained ones saved as roadseg-trained.pt); with `distill` > 0, `distill` x the
     class-weighted cross-entropy against `init`'s flip-averaged class probabilities joins the
-    loss (distillation_loss); with `more`
+    loss (distillation_loss); with `bf16`, the forward pass runs under bfloat16 autocast
+    (weights, optimizer and loss stay float32); with `more`
     (FrameStream.take) frames keep arriving while it trains, up to `capacity` in all;
     batches are random `crop_hw` (H, W) windows of the frames (the whole frame when it is the
     frame's size) -> (the model in eval mode, whether its batch norms were kept frozen, the
@@ -556,7 +559,9 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
             xb, yb, tb = augment(xb, yb.long(), rng, extra=targets[idx])
         if mirror:  # each frame and its mirror image, with the same photometric draw
             xb, yb = torch.cat([xb, xb.flip(-1)]), torch.cat([yb, yb.flip(-1)])
-        logits = model(xb)
+        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=bf16):
+            logits = model(xb)
+        logits = logits.float()
         loss = (loss_fn(logits, yb) if hard_pixels >= 1.0
                 else hard_pixel_loss(logits, yb, class_w, hard_pixels, rng))
         if iou_loss:
@@ -597,7 +602,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
         "batch": batch, "init": init, "lr_max": lr_max,
         "iou_loss_weight": iou_loss, "hard_pixels": hard_pixels, "arch": arch,
         "mirror_consistency": mirror, "ema": ema, "average_init": average_init,
-        "distill": distill, "crop_hw": list(crop_hw),
+        "distill": distill, "bf16": bf16, "crop_hw": list(crop_hw),
     }
 
 

@@ -1,6 +1,6 @@
 """The training loss's soft-Jaccard term, hard-pixel cross-entropy, mirror consistency and
-distillation from a teacher, and the moving average of the weights (needs the optional torch
-extra: `.[train]`)."""
+distillation from a teacher, the moving average of the weights, and bfloat16 training (needs
+the optional torch extra: `.[train]`)."""
 
 import json
 
@@ -382,3 +382,16 @@ def test_distillation_needs_a_teacher_and_whole_frames(tmp_path, capsys):
                  "--init", str(DEFAULT_MODEL)]) == 1
     assert "must be >= 0" in capsys.readouterr().err
     assert not any(out.iterdir())  # nothing rendered, nothing written
+
+
+def test_a_bf16_run_trains_and_says_so(tmp_path):
+    from services.cli import main
+
+    out = tmp_path / "bf16"
+    assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "24", "--steps", "4",
+                 "--batch", "2", "--workers", "1", "--no-cache", "--bf16",
+                 "--no-flip-average"]) == 0
+    log = json.loads((out / "train_log.json").read_text())
+    assert log["bf16"] is True and "--bf16" in log["command"]
+    assert log["steps"] == 4 and np.isfinite(log["final_loss"])
+    assert (out / "roadseg.onnx").stat().st_size > 10_000  # exported in float32
