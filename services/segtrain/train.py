@@ -1270,7 +1270,8 @@ def model_card(result: dict) -> str:
   (`pip install .[train]`){_init_text(result)}, RoadSegNet {_arch_text(result)}, AdamW,
   cosine schedule (peak learning rate {result.get("lr_max", LR_MAX):g}),
   class-weighted cross-entropy (weights {result["class_weights"]}){_loss_text(result)}, device
-  `{result.get("device", "cpu")}`, batch {result.get("batch", BATCH)}; {result["steps"]} steps in
+  `{result.get("device", "cpu")}`{" (bfloat16 autocast)" if result.get("bf16") else ""},
+  batch {result.get("batch", BATCH)}; {result["steps"]} steps in
   {result["train_s"] / 60:.1f} min after {result.get("render_s", 0) / 60:.1f} min of rendering{
     " (the first frames; rendering went on while it trained)" if result.get("stream") else ""}.{
     _ema_text(result)}{_soup_text(result)}{_average_init_text(result)}

@@ -393,5 +393,6 @@ def test_a_bf16_run_trains_and_says_so(tmp_path):
                  "--no-flip-average"]) == 0
     log = json.loads((out / "train_log.json").read_text())
     assert log["bf16"] is True and "--bf16" in log["command"]
+    assert "(bfloat16 autocast)" in (out / "MODEL_CARD.md").read_text()
     assert log["steps"] == 4 and np.isfinite(log["final_loss"])
     assert (out / "roadseg.onnx").stat().st_size > 10_000  # exported in float32
