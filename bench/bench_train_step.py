@@ -42,8 +42,9 @@ def _frames(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def time_steps(frames, labels, *, init, crop_hw, bf16: bool, steps: int, batch: int) -> dict:
-    """`steps` + 1 steps of train_model; the first (allocation, oneDNN's kernel choice) is
-    timed apart by a 1-step run first."""
+    """Two fresh train_model runs: s_per_step is a `steps`-step run's training time over its
+    steps, its first step (allocation, oneDNN's kernel choice) included; first_step_s is a
+    1-step run's time, to show how much of it that first step is."""
     from services.segtrain.train import train_model
 
     def run(n):

@@ -213,8 +213,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "learns what the runtime's two passes decide (default 0: off)")
     p.add_argument("--bf16", action="store_true",
                    help="run the training forward pass under bfloat16 autocast (weights, "
-                        "optimizer and loss stay float32): about half the time a step on CPUs "
-                        "with AVX-512 BF16 (default off: float32)")
+                        "optimizer and loss stay float32): 0.69-0.75x float32's time a step on "
+                        "a 2-core EPYC with AVX-512 BF16, bench/bench_train_step.py (default "
+                        "off: float32)")
     p.add_argument("--soup", default=None, type=lambda v: v.split(","), metavar="D1,D2",
                    help="one run per junction-line dose (light, heavy: services/segtrain/data.py "
                         "JUNCTIONS), --frames, the budgets or --steps shared out evenly, and "
