@@ -150,6 +150,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--crop", default="384x224",
                    help="training windows WxH cut from the 640x360 frames, or full (whole "
                         "frames: about 2.7x the time per step; default 384x224)")
+    p.add_argument("--full-after", type=float, default=1.0, metavar="FRAC",
+                   help="train on --crop's windows for this share of the run, then on whole "
+                        "frames (one run from scratch that ends as the fine-tunes do; "
+                        "default 1: crops throughout)")
     p.add_argument("--refine-only", default=None, metavar="MODEL",
                    help="set the paint-border settings of a trained ONNX model (metadata "
                         "`refine`) on the calibration frames of these rendering settings, and "

@@ -52,6 +52,7 @@ def train_command(args, cfg) -> int:
     check_ema(args.ema)
     check_average_init(args.average_init, args.init)
     check_distill(args.distill, args.init, args.crop == "full" and not args.stream)
+    check_full_after(args.full_after, args.crop)
     for weights in export_weights(args):
         if not Path(weights).is_file():
             raise ConfigError(f"--export-only {weights}: no such file (a run's roadseg.pt "
@@ -112,7 +113,8 @@ def train_command(args, cfg) -> int:
                               hard_pixels=args.hard_pixels, mirror=args.mirror_consistency,
                               ema=args.ema, average_init=args.average_init,
                               distill=args.distill, bf16=args.bf16,
-                              crop_hw=crop_size(args.crop, frames.shape[1:3]))
+                              crop_hw=crop_size(args.crop, frames.shape[1:3]),
+                              full_after=args.full_after)
     del frames, labels  # before the border step renders its own
     result["render_s"] = round(render_s, 1)
     return _finish(args, out, result, t_start)
@@ -211,7 +213,8 @@ def _train_soup(args, out: Path, t_start: float) -> int:
             device=args.device, batch=args.batch, init=args.init, iou_loss=args.iou_loss,
             arch=args.arch, hard_pixels=args.hard_pixels, mirror=args.mirror_consistency,
             average_init=args.average_init, distill=args.distill, bf16=args.bf16,
-            crop_hw=crop_size(args.crop, frames.shape[1:3]))
+            crop_hw=crop_size(args.crop, frames.shape[1:3]),
+            full_after=args.full_after)
         # the held-out arrays are views of this run's frames: copied, so the frames can go
         x_val, y_val, frames_val, labels_val = held_out
         held.append((x_val, y_val, frames_val.copy(), labels_val.copy()))
@@ -229,7 +232,8 @@ def _train_soup(args, out: Path, t_start: float) -> int:
               **{key: runs[0][key] for key in ("class_weights", "lr_max", "seed", "device",
                                                "batch", "init", "arch", "iou_loss_weight",
                                                "hard_pixels", "mirror_consistency", "average_init",
-                                               "distill", "bf16", "crop_hw")},
+                                               "distill", "bf16", "crop_hw",
+                                               "full_after")},
               **exported}
     return _finish(args, out, result, t_start)
 
@@ -394,7 +398,8 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
                                   mirror=args.mirror_consistency, ema=args.ema,
                                   average_init=args.average_init, distill=args.distill,
                                   bf16=args.bf16,
-                                  crop_hw=crop_size(args.crop, frames.shape[1:3]))
+                                  crop_hw=crop_size(args.crop, frames.shape[1:3]),
+                                  full_after=args.full_after)
     finally:
         stream.close()
     result["render_s"] = round(render_s, 1)
@@ -432,6 +437,7 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
         + (["--bf16"] if args.bf16 else [])
         + ([f"--soup {','.join(args.soup)}"] if args.soup else [])
         + ([f"--crop {args.crop}"] if args.crop != DEFAULT_CROP else [])
+        + ([f"--full-after {args.full_after:g}"] if args.full_after < 1.0 else [])
         + ([] if args.flip_average else ["--no-flip-average"])
         + ([f"--border-frames {args.border_frames}"] if args.border_frames else [])
         + ([f"--border-seed {args.border_seed}"]
@@ -467,7 +473,8 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
                 iou_loss: float = 0.0, arch: str = "s", more=None,
                 capacity: int = 0, crop_hw: tuple[int, int] = CROP_HW,
                 hard_pixels: float = 1.0, mirror: float = 0.0, ema: float = 0.0,
-                average_init: float = 0.0, distill: float = 0.0, bf16: bool = False):
+                average_init: float = 0.0, distill: float = 0.0, bf16: bool = False,
+                full_after: float = 1.0):
     """Train RoadSegNet of size `arch` (archs.ARCHS) for train_s seconds (or, with `steps`,
     for exactly that many steps, the schedule spread over them) on `device` (cpu: 2
     threads; cuda: the frames live on the GPU), from scratch or, with `init`, from a trained
@@ -484,7 +491,8 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     (weights, optimizer and loss stay float32); with `more`
     (FrameStream.take) frames keep arriving while it trains, up to `capacity` in all;
     batches are random `crop_hw` (H, W) windows of the frames (the whole frame when it is the
-    frame's size) -> (the model in eval mode, whether its batch norms were kept frozen, the
+    frame's size), whole frames once `full_after` of the run has passed -> (the model in
+    eval mode, whether its batch norms were kept frozen, the
     held-out frames (x_val, y_val: copies as uint8 tensors NCHW and NHW on `device`; the same
     as views of `frames`, `labels`), the training log's entries)."""
     import torch
@@ -551,7 +559,8 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
             n_loaded += k
         n_drawn = batch // 2 if mirror else batch  # with `mirror`, the rest are their mirrors
         idx = torch.from_numpy(rng.integers(n_val, n_loaded, n_drawn)).to(dev)
-        xb, yb, top = _crop_batch(x_all[idx], y_all[idx], rng, crop_hw)
+        window = crop_hw if frac < full_after else tuple(x_all.shape[2:4])
+        xb, yb, top = _crop_batch(x_all[idx], y_all[idx], rng, window)
         model.crop_rows = (top, x_all.shape[2])
         if targets is None:
             xb, yb = augment(xb, yb.long(), rng)
@@ -603,6 +612,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
         "iou_loss_weight": iou_loss, "hard_pixels": hard_pixels, "arch": arch,
         "mirror_consistency": mirror, "ema": ema, "average_init": average_init,
         "distill": distill, "bf16": bf16, "crop_hw": list(crop_hw),
+        "full_after": full_after,
     }
 
 
@@ -786,6 +796,15 @@ def mirror_consistency_loss(logits):
         log_m = torch.log(m.clamp_min(1e-8))
     kl = (m * (2.0 * log_m - log_p - log_q)).sum(1)
     return kl.mean()
+
+
+def check_full_after(frac: float, crop: str) -> None:
+    """--full-after: a share of the run in (0, 1], and crops to switch from."""
+    if not 0.0 < frac <= 1.0:
+        raise ConfigError(f"--full-after {frac:g}: a share of the run in (0, 1]")
+    if frac < 1.0 and crop == "full":
+        raise ConfigError("--full-after with --crop full: the run trains on whole frames "
+                          "throughout; leave one out")
 
 
 def check_distill(weight: float, init: str | None, whole_frames: bool = True) -> None:
@@ -1335,6 +1354,10 @@ def _crop_text(result: dict) -> str:
     h, w = result.get("crop_hw", CROP_HW)
     if (w, h) == INPUT_SIZE:
         return f"whole {w}x{h} frames (no crops)"
+    full_after = result.get("full_after", 1.0)
+    if full_after < 1.0:
+        return (f"random {w}x{h} crops for the first {100 * full_after:g} % of the steps, "
+                "whole frames after")
     return f"random {w}x{h} crops"
 
 

@@ -1,6 +1,6 @@
 """The training loss's soft-Jaccard term, hard-pixel cross-entropy, mirror consistency and
-distillation from a teacher, the moving average of the weights, and bfloat16 training (needs
-the optional torch extra: `.[train]`)."""
+distillation from a teacher, the moving average of the weights, bfloat16 training, and crops
+then whole frames in one run (needs the optional torch extra: `.[train]`)."""
 
 import json
 
@@ -396,3 +396,40 @@ def test_a_bf16_run_trains_and_says_so(tmp_path):
     assert "(bfloat16 autocast)" in (out / "MODEL_CARD.md").read_text()
     assert log["steps"] == 4 and np.isfinite(log["final_loss"])
     assert (out / "roadseg.onnx").stat().st_size > 10_000  # exported in float32
+
+
+def test_full_after_trains_crops_then_whole_frames_and_says_so(tmp_path, monkeypatch):
+    """--full-after 0.5: the first half of the steps on --crop's windows, the rest on whole
+    frames (one run from scratch ending as the fine-tunes train), in the log and the card."""
+    from services.cli import main
+    from services.segtrain import train
+
+    windows = []
+    crop_batch = train._crop_batch
+
+    def recording(x, y, rng, crop_hw):
+        windows.append(tuple(crop_hw))
+        return crop_batch(x, y, rng, crop_hw)
+
+    monkeypatch.setattr(train, "_crop_batch", recording)
+    out = tmp_path / "full-after"
+    assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "24", "--steps", "4",
+                 "--batch", "2", "--workers", "1", "--no-cache", "--full-after", "0.5",
+                 "--no-flip-average"]) == 0
+    assert windows == [(224, 384)] * 2 + [(360, 640)] * 2
+    log = json.loads((out / "train_log.json").read_text())
+    assert log["full_after"] == 0.5 and "--full-after 0.5" in log["command"]
+    assert "crops for the first 50 % of the steps, whole frames after" in (
+        out / "MODEL_CARD.md").read_text()
+
+
+def test_full_after_needs_a_share_of_a_run_on_crops(tmp_path, capsys):
+    from services.cli import main
+
+    out = tmp_path / "out"
+    for bad in ("0", "1.5", "-0.2"):
+        assert main(["train-seg", "--out", str(out), "--full-after", bad]) == 1
+        assert "a share of the run in (0, 1]" in capsys.readouterr().err
+    assert main(["train-seg", "--out", str(out), "--full-after", "0.5", "--crop", "full"]) == 1
+    assert "--full-after with --crop full" in capsys.readouterr().err
+    assert not any(out.iterdir())  # nothing rendered, nothing written
