@@ -63,6 +63,29 @@ def test_half_resolution_export_gives_the_labels_of_the_full_resolution_logits(t
     assert (labels == ref[0].argmax(0).numpy()).mean() > 0.999
 
 
+def test_the_export_folds_the_curb_class_into_none_without_a_reduction(tmp_path):
+    """Channel 0 of the export is the larger of the none and curb logits; with one auxiliary
+    class the graph takes it as it is (no ReduceMax over one channel: 0.3 ms a pass), and with
+    two it still takes their larger."""
+    import onnx
+
+    torch.manual_seed(2)
+    x = torch.rand(1, 3, 64, 128)
+    for extra in (1, 2):
+        model = RoadSegNet(num_classes=NUM_CLASSES + extra, **ARCHS["s"]).eval()
+        with torch.no_grad():
+            full = model(x)
+            model.export_classes = NUM_CLASSES
+            folded = model(x)
+        torch.testing.assert_close(folded[:, 1:], full[:, 1:NUM_CLASSES])
+        torch.testing.assert_close(folded[:, 0], full[:, [0, *range(NUM_CLASSES, NUM_CLASSES
+                                                                    + extra)]].amax(1))
+        path = tmp_path / f"fold{extra}.onnx"
+        train.export_onnx(model, path, seed=0)
+        ops = {node.op_type for node in onnx.load(str(path)).graph.node}
+        assert ("ReduceMax" in ops) == (extra > 1)
+
+
 def test_fine_tuning_starts_from_a_saved_run_of_the_same_architecture(tmp_path):
     torch.manual_seed(2)
     saved = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["m"])
