@@ -107,14 +107,7 @@ def train_command(args, cfg) -> int:
     # with a warm cache trains exactly as long as the first run did
     train_s = max(minutes * 60.0 - max(render_s, render_budget_s) - 60.0, 60.0)
     result = train_and_export(frames, labels, out, seed=args.seed, train_s=train_s,
-                              steps=args.steps,
-                              device=args.device, batch=args.batch, init=args.init,
-                              iou_loss=args.iou_loss, arch=args.arch,
-                              hard_pixels=args.hard_pixels, mirror=args.mirror_consistency,
-                              ema=args.ema, average_init=args.average_init,
-                              distill=args.distill, bf16=args.bf16,
-                              crop_hw=crop_size(args.crop, frames.shape[1:3]),
-                              full_after=args.full_after)
+                              steps=args.steps, **run_options(args, frames.shape[1:3]))
     del frames, labels  # before the border step renders its own
     result["render_s"] = round(render_s, 1)
     return _finish(args, out, result, t_start)
@@ -171,6 +164,16 @@ def check_soup(args) -> None:
                           f"{len(args.soup)} no step")
 
 
+def run_options(args, frame_hw) -> dict:
+    """train_model's options as the command line gives them (the same for a plain, a soup
+    and a streamed run), for frames of (H, W) `frame_hw`."""
+    return {"device": args.device, "batch": args.batch, "init": args.init,
+            "iou_loss": args.iou_loss, "arch": args.arch, "hard_pixels": args.hard_pixels,
+            "mirror": args.mirror_consistency, "ema": args.ema,
+            "average_init": args.average_init, "distill": args.distill, "bf16": args.bf16,
+            "crop_hw": crop_size(args.crop, frame_hw), "full_after": args.full_after}
+
+
 def _render_budget_s(args) -> float:
     """Seconds of rendering: --render-minutes; a run by --steps renders every frame; else 20 %
     of --minutes, at most 10 minutes."""
@@ -210,11 +213,7 @@ def _train_soup(args, out: Path, t_start: float) -> int:
         model, frozen_norms, held_out, run = train_model(
             frames, labels, out, seed=args.seed, train_s=train_s,
             steps=None if args.steps is None else args.steps // k,
-            device=args.device, batch=args.batch, init=args.init, iou_loss=args.iou_loss,
-            arch=args.arch, hard_pixels=args.hard_pixels, mirror=args.mirror_consistency,
-            average_init=args.average_init, distill=args.distill, bf16=args.bf16,
-            crop_hw=crop_size(args.crop, frames.shape[1:3]),
-            full_after=args.full_after)
+            **run_options(args, frames.shape[1:3]))
         # the held-out arrays are views of this run's frames: copied, so the frames can go
         x_val, y_val, frames_val, labels_val = held_out
         held.append((x_val, y_val, frames_val.copy(), labels_val.copy()))
@@ -392,14 +391,8 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
                     len(frames), render_s, args.workers)
         train_s = max(float(args.minutes) * 60.0 - render_s - 60.0, 60.0)
         result = train_and_export(frames, labels, out, seed=args.seed, train_s=train_s,
-                                  device=args.device, batch=args.batch, init=args.init,
-                                  iou_loss=args.iou_loss, arch=args.arch, more=stream.take,
-                                  capacity=args.frames, hard_pixels=args.hard_pixels,
-                                  mirror=args.mirror_consistency, ema=args.ema,
-                                  average_init=args.average_init, distill=args.distill,
-                                  bf16=args.bf16,
-                                  crop_hw=crop_size(args.crop, frames.shape[1:3]),
-                                  full_after=args.full_after)
+                                  more=stream.take, capacity=args.frames,
+                                  **run_options(args, frames.shape[1:3]))
     finally:
         stream.close()
     result["render_s"] = round(render_s, 1)
@@ -522,7 +515,9 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     check_average_init(average_init, init)
     start = ({k: v.detach().clone() for k, v in model.state_dict().items()}
              if average_init else None)
-    check_distill(distill, init, more is None and tuple(crop_hw) == tuple(frames.shape[1:3]))
+    whole = tuple(crop_hw) == tuple(frames.shape[1:3])
+    check_distill(distill, init, more is None and whole)
+    check_full_after(full_after, "full" if whole else "crops")
     model = model.to(dev)
     targets = None
     if distill:

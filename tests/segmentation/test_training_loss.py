@@ -433,3 +433,17 @@ def test_full_after_needs_a_share_of_a_run_on_crops(tmp_path, capsys):
     assert main(["train-seg", "--out", str(out), "--full-after", "0.5", "--crop", "full"]) == 1
     assert "--full-after with --crop full" in capsys.readouterr().err
     assert not any(out.iterdir())  # nothing rendered, nothing written
+
+
+def test_train_model_itself_refuses_a_switch_it_cannot_make(tmp_path):
+    """A caller of train_model (not only the command line) gets the same refusals: no switch
+    to whole frames from whole-frame windows, no share outside (0, 1]."""
+    from common.errors import ConfigError
+    from services.segtrain.train import train_model
+
+    frames = np.zeros((8, 32, 64, 3), np.uint8)
+    labels = np.zeros((8, 32, 64), np.uint8)
+    for crop_hw, share in (((32, 64), 0.5), ((16, 32), 0.0), ((16, 32), 1.5)):
+        with pytest.raises(ConfigError):
+            train_model(frames, labels, tmp_path, seed=0, train_s=1.0, steps=1,
+                        crop_hw=crop_hw, full_after=share)
