@@ -170,6 +170,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "(metadata `border_net`) on --frames town frames of --seed (use a seed "
                         "the model never trained on), keep it if it beats the model's "
                         "brightness rule on the last 10 %%, and stop")
+    p.add_argument("--prune", default=None, metavar="MODEL",
+                   help="prune an exported model of the default architecture to --arch's "
+                        "channels at 1/4 resolution (greedily, by the loss on 48 of --frames "
+                        "town frames of --seed), widen it to --arch, write --out/roadseg.pt "
+                        "(for --init with --arch) and stop (services/segtrain/prune.py)")
     p.add_argument("--border-frames", type=int, default=0, metavar="N",
                    help="after training, fit the learned paint-border classifier (as "
                         "--border-only does) on N town frames of --border-seed, all rendered "

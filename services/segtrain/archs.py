@@ -18,3 +18,7 @@ ARCHS["m-norows"] = {**ARCHS["m"], "rows": False}
 ARCHS["w16"] = {**ARCHS["s"], "widths": [16, 32, 48, 64]}
 # "s" with a sub-pixel head: full-resolution logits from the 1/2 stage, at the same time
 ARCHS["s-sub"] = {**ARCHS["s"], "subpixel": 2}
+# "s" with its 1/4-resolution channels pruned from 20 to 16 (encoder and decoder: the 1/2
+# decoder then reads 16 upsampled channels instead of 32 padded ones) and the rest at the widths
+# the blocked convolutions compute anyway: 5.6 against 7.9 ms a pass (one thread, 640x312)
+ARCHS["p16"] = {**ARCHS["s"], "widths": [16, 16, 48, 64]}

@@ -68,6 +68,10 @@ def train_command(args, cfg) -> int:
         return 0
     if args.border_only:
         return _border_only(args, out)
+    if args.prune:
+        from services.segtrain.prune import prune_command
+
+        return prune_command(args, out, INPUT_SIZE)
     if args.steps is not None and args.steps < 1:
         raise ConfigError(f"--steps {args.steps}: at least 1")
     check_soup(args)

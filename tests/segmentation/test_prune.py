@@ -1,0 +1,105 @@
+"""Pruning the 1/4-resolution channels of a trained RoadSegNet (services/segtrain/prune.py;
+needs the optional torch extra: `pip install .[train]`)."""
+
+import json
+
+import pytest
+
+torch = pytest.importorskip("torch", reason="training tests need the .[train] extra (torch)")
+
+from common.segmentation import DEFAULT_MODEL  # noqa: E402
+from services.segtrain import prune  # noqa: E402
+from services.segtrain.archs import ARCHS  # noqa: E402
+from services.segtrain.data import TRAIN_CLASSES  # noqa: E402
+from services.segtrain.net import RoadSegNet  # noqa: E402
+
+
+def _folded_model(seed: int = 0):
+    """A default-architecture network as an export loads: batch norms folded (scale 1, running
+    mean 0, variance 1 - eps), their biases random, so a dropped channel must lose its bias."""
+    torch.manual_seed(seed)
+    model = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]).eval()
+    with torch.no_grad():
+        for m in model.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.weight.fill_(1.0)
+                m.bias.uniform_(0.1, 0.4)  # alive: no channel is dead by chance
+                m.running_mean.zero_()
+                m.running_var.fill_(1.0 - m.eps)
+    return model
+
+
+def test_a_masked_network_computes_what_the_narrowed_one_does():
+    model = _folded_model()
+    x = torch.rand(2, 3, 64, 96)
+    enc_drop, dec_drop = [3, 14, 0, 19], [7, 1, 12, 5]
+    enc = [c for c in range(20) if c not in enc_drop]
+    dec = [c for c in range(20) if c not in dec_drop]
+    narrowed = prune.narrowed_quarter(model, enc, dec)
+    assert narrowed.arch["widths"] == [12, 16, 40, 64]
+    with torch.no_grad():
+        masked = prune.quarter_masked(model, enc_drop, dec_drop)(x)
+        torch.testing.assert_close(narrowed(x), masked, atol=1e-5, rtol=1e-5)
+        assert not torch.allclose(masked, model(x), atol=1e-3)  # the channels did matter
+        keep_all = prune.narrowed_quarter(model, list(range(20)), list(range(20)))
+        torch.testing.assert_close(keep_all(x), model(x), atol=1e-6, rtol=1e-6)
+    with pytest.raises(ValueError, match="as many encoder as decoder"):
+        prune.narrowed_quarter(model, enc, dec[:-1])
+
+
+def test_greedy_pruning_drops_dead_channels_first_and_keeps_the_width_asked():
+    model = _folded_model(1)
+    with torch.no_grad():  # decoder channel 9 and encoder channel 4 made dead
+        dead = prune.quarter_masked(model, [4], [9])
+    x = torch.rand(1, 3, 64, 96)
+    with torch.no_grad():
+        reference = dead(x)
+
+    def change(m):
+        with torch.no_grad():
+            return float((m(x) - reference).abs().mean())
+
+    enc, dec, steps = prune.greedy_quarter_pruning(dead, 17, change)
+    assert steps[0][:2] == ("dec", 9) and steps[1][:2] == ("enc", 4)
+    assert steps[0][2] == steps[1][2] == 0.0  # nothing changes
+    assert len(enc) == len(dec) == 17 and 4 not in enc and 9 not in dec
+    with pytest.raises(Exception, match="cannot prune 20 channels"):
+        prune.greedy_quarter_pruning(dead, 21, change)
+
+
+def test_the_prune_command_writes_an_init_for_the_narrower_architecture(tmp_path, monkeypatch):
+    """On a few town frames: the packaged model pruned to p16 and widened computes the pruned
+    network (its loss is the last drop's), and a fine-tune starts from it with --arch p16."""
+    from services.cli import main
+
+    monkeypatch.setattr(prune, "PRUNE_FRAMES", 2)
+    out = tmp_path / "pruned"
+    assert main(["train-seg", "--prune", str(DEFAULT_MODEL), "--arch", "p16", "--out", str(out),
+                 "--seed", "5", "--frames", "8", "--workers", "1", "--no-cache"]) == 0
+    log = json.loads((out / "prune_log.json").read_text())
+    assert log["widths"] == [16, 16, 48, 64] and log["loss_frames"] == 2
+    assert len(log["encoder_kept"]) == len(log["decoder_kept"]) == 16
+    assert len(log["steps"]) == 8
+    assert log["loss_after"] == pytest.approx(log["steps"][-1][2], abs=1e-4)
+    first = (out / "roadseg.pt").read_bytes()
+    tuned = tmp_path / "tuned"
+    assert main(["train-seg", "--out", str(tuned), "--seed", "6", "--frames", "8", "--steps",
+                 "2", "--batch", "2", "--workers", "1", "--no-cache", "--crop", "full",
+                 "--init", str(out / "roadseg.pt"), "--arch", "p16", "--no-flip-average"]) == 0
+    assert json.loads((tuned / "train_log.json").read_text())["arch"] == "p16"
+    assert main(["train-seg", "--prune", str(DEFAULT_MODEL), "--arch", "p16", "--out", str(out),
+                 "--seed", "5", "--frames", "8", "--workers", "1", "--no-cache"]) == 0
+    assert (out / "roadseg.pt").read_bytes() == first  # the same file again
+
+
+def test_prune_refuses_what_it_cannot_do_before_rendering(tmp_path, capsys):
+    from services.cli import main
+
+    out = tmp_path / "out"
+    assert main(["train-seg", "--prune", str(DEFAULT_MODEL), "--arch", "m", "--out",
+                 str(out)]) == 1
+    assert "must be --arch s with its 1/4-resolution width changed" in capsys.readouterr().err
+    assert main(["train-seg", "--prune", str(tmp_path / "none.onnx"), "--arch", "p16",
+                 "--out", str(out)]) == 1
+    assert "an exported RoadSegNet (.onnx) file" in capsys.readouterr().err
+    assert not any(out.iterdir())  # nothing rendered, nothing written
