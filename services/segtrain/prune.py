@@ -86,7 +86,7 @@ def narrowed_quarter(model, enc_keep, dec_keep):
             block, depthwise = name.split(".")[0], src.groups > 1
             out_map = torch.arange(src.out_channels)
             in_map = torch.arange(src.in_channels // src.groups)
-            if block == "down1" and not depthwise or block == "enc1":
+            if (block == "down1" and not depthwise) or block == "enc1":
                 out_map = enc
                 if block == "enc1" and not depthwise:
                     in_map = enc
