@@ -68,7 +68,7 @@ def narrowed_quarter(model, enc_keep, dec_keep):
     import torch
     from torch import nn
 
-    from services.segtrain.net import RoadSegNet
+    from services.segtrain.net import RoadSegNet, _norm_after
 
     if len(enc_keep) != len(dec_keep):
         raise ValueError(f"keep as many encoder as decoder channels ({len(enc_keep)}, "
@@ -102,10 +102,10 @@ def narrowed_quarter(model, enc_keep, dec_keep):
                               else src.weight[out_map][:, in_map])
             if conv.bias is not None:
                 conv.bias.copy_(src.bias[out_map])
-            norm = name.rsplit(".", 1)[0] + ".1"
-            if name.endswith(".0") and isinstance(old.get(norm), nn.BatchNorm2d):
+            norm, src_norm = _norm_after(mods, name), _norm_after(old, name)
+            if norm is not None:
                 for key in ("weight", "bias", "running_mean", "running_var"):
-                    getattr(mods[norm], key).copy_(getattr(old[norm], key)[out_map])
+                    getattr(norm, key).copy_(getattr(src_norm, key)[out_map])
     return new.eval()
 
 
@@ -154,18 +154,19 @@ def prune_command(args, out: Path, input_size) -> int:
 
     target = ARCHS[args.arch]
     source = ARCHS[SOURCE_ARCH]
-    if target["depths"] != source["depths"] or target.get("rows") != source.get("rows") or any(
-            t < s for i, (t, s) in enumerate(zip(target["widths"], source["widths"],
-                                                   strict=True)) if i != 1):
+    same_but_widths = ({k: v for k, v in target.items() if k != "widths"}
+                       == {k: v for k, v in source.items() if k != "widths"})
+    if not same_but_widths or any(t < s for i, (t, s) in enumerate(
+            zip(target["widths"], source["widths"], strict=True)) if i != 1):
         raise ConfigError(f"--prune: --arch {args.arch} must be --arch {SOURCE_ARCH} with "
                           "its 1/4-resolution width changed (the others as wide or wider)")
     if args.soup and len(args.soup) > 1:
         raise ConfigError("--prune: give one --soup dose (the towns of the frames)")
+    if not str(args.prune).endswith(".onnx") or not Path(args.prune).is_file():
+        raise ConfigError(f"--prune {args.prune}: an exported RoadSegNet (.onnx) file")
     t0 = time.perf_counter()
     torch.set_num_threads(THREADS)
     model = RoadSegNet(num_classes=seg_data.TRAIN_CLASSES, **source)
-    if not str(args.prune).endswith(".onnx") or not Path(args.prune).is_file():
-        raise ConfigError(f"--prune {args.prune}: an exported RoadSegNet (.onnx) file")
     _load_init(model, args.prune)
     model.eval()
     frames, labels = seg_data.training_set(
