@@ -254,16 +254,24 @@ def narrow(wide: nn.Module, small: nn.Module) -> None:
     `small` computes what `wide` does when the dropped channels are never read (an `aligned`
     export, whose padding channels are zeros); the caller checks that."""
     modules, big = dict(small.named_modules()), dict(wide.named_modules())
+    for name, src, conv, out_map, in_map in _channel_maps(small, wide):
+        gather_channels(conv, src, out_map, in_map, _norm_after(modules, name),
+                        _norm_after(big, name))
+
+
+def gather_channels(conv: nn.Conv2d, src: nn.Conv2d, out_map, in_map, norm=None,
+                    src_norm=None) -> None:
+    """Set `conv` (and its batch norm `norm`, if any) to the output channels `out_map` of
+    `src` (and of `src_norm`), reading its input channels `in_map` (a depthwise convolution's
+    one input channel is its output's)."""
     with torch.no_grad():
-        for name, src, conv, out_map, in_map in _channel_maps(small, wide):
-            conv.weight.copy_(src.weight[out_map] if conv.groups > 1
-                              else src.weight[out_map[:, None], in_map[None, :]])
-            if conv.bias is not None:
-                conv.bias.copy_(src.bias[out_map])
-            norm, src_norm = _norm_after(modules, name), _norm_after(big, name)
-            if norm is not None:
-                for key in ("weight", "bias", "running_mean", "running_var"):
-                    getattr(norm, key).copy_(getattr(src_norm, key)[out_map])
+        conv.weight.copy_(src.weight[out_map] if conv.groups > 1
+                          else src.weight[out_map[:, None], in_map[None, :]])
+        if conv.bias is not None:
+            conv.bias.copy_(src.bias[out_map])
+        if norm is not None:
+            for key in ("weight", "bias", "running_mean", "running_var"):
+                getattr(norm, key).copy_(getattr(src_norm, key)[out_map])
 
 
 def aligned(model: nn.Module, block: int = 16) -> nn.Module:

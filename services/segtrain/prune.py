@@ -68,7 +68,7 @@ def narrowed_quarter(model, enc_keep, dec_keep):
     import torch
     from torch import nn
 
-    from services.segtrain.net import RoadSegNet, _norm_after
+    from services.segtrain.net import RoadSegNet, _norm_after, gather_channels
 
     if len(enc_keep) != len(dec_keep):
         raise ValueError(f"keep as many encoder as decoder channels ({len(enc_keep)}, "
@@ -78,34 +78,27 @@ def narrowed_quarter(model, enc_keep, dec_keep):
                      depths=model.arch["depths"], rows=model.arch["rows"])
     enc, dec = torch.as_tensor(enc_keep), torch.as_tensor(dec_keep)
     old, mods = dict(model.named_modules()), dict(new.named_modules())
-    with torch.no_grad():
-        for name, conv in new.named_modules():
-            if not isinstance(conv, nn.Conv2d):
-                continue
-            src = old[name]
-            block, depthwise = name.split(".")[0], src.groups > 1
-            out_map = torch.arange(src.out_channels)
-            in_map = torch.arange(src.in_channels // src.groups)
-            if (block == "down1" and not depthwise) or block == "enc1":
-                out_map = enc
-                if block == "enc1" and not depthwise:
-                    in_map = enc
-            elif block == "down2":
-                out_map, in_map = (enc, in_map) if depthwise else (out_map, enc)
-            elif block == "dec1":
-                cat = torch.cat([torch.arange(w2), w2 + enc])
-                out_map, in_map = (cat, in_map) if depthwise else (dec, cat)
-            elif block == "dec0":
-                cat = torch.cat([dec, w1 + torch.arange(w0)])
-                out_map, in_map = (cat, in_map) if depthwise else (out_map, cat)
-            conv.weight.copy_(src.weight[out_map] if depthwise
-                              else src.weight[out_map][:, in_map])
-            if conv.bias is not None:
-                conv.bias.copy_(src.bias[out_map])
-            norm, src_norm = _norm_after(mods, name), _norm_after(old, name)
-            if norm is not None:
-                for key in ("weight", "bias", "running_mean", "running_var"):
-                    getattr(norm, key).copy_(getattr(src_norm, key)[out_map])
+    for name, conv in new.named_modules():
+        if not isinstance(conv, nn.Conv2d):
+            continue
+        src = old[name]
+        block, depthwise = name.split(".")[0], src.groups > 1
+        out_map = torch.arange(src.out_channels)
+        in_map = torch.arange(src.in_channels // src.groups)
+        if (block == "down1" and not depthwise) or block == "enc1":
+            out_map = enc
+            if block == "enc1" and not depthwise:
+                in_map = enc
+        elif block == "down2":
+            out_map, in_map = (enc, in_map) if depthwise else (out_map, enc)
+        elif block == "dec1":
+            cat = torch.cat([torch.arange(w2), w2 + enc])
+            out_map, in_map = (cat, in_map) if depthwise else (dec, cat)
+        elif block == "dec0":
+            cat = torch.cat([dec, w1 + torch.arange(w0)])
+            out_map, in_map = (cat, in_map) if depthwise else (out_map, cat)
+        gather_channels(conv, src, out_map, in_map, _norm_after(mods, name),
+                        _norm_after(old, name))
     return new.eval()
 
 
