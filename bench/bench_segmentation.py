@@ -20,8 +20,7 @@ full resolution (labels resized back from the model's input size), and also insi
 product runs it: the rows above rays rising segmentation.sky_margin_deg above level (the
 nominal camera's `sky_rows`) are not segmented (`--sky-margin-deg -1`: every row). Speed:
 p50/p95 ms of `segment_model_size` (resize, network, upsampling, argmax, border refinement) at
-the model's input size with one onnxruntime thread and the whole process pinned to one CPU
-(`speed.pinned_cpu`; since 2026-11-27 afternoon), and of the whole `segment()` call at full
+the model's input size with one onnxruntime thread, and of the whole `segment()` call at full
 size, on the held-out route frames themselves (up to TIMED_FRAMES per world, in turn): until
 2026-11-25 it timed random noise, which has almost no paint borders to upsample and refine
 and so read 12 ms where road frames take 14.5 ms. `paint_gate`: precision and recall in the
@@ -35,7 +34,6 @@ frames, not the training: two seeds of one recipe differed by 0.006 in mean lane
 paired interval of [-0.009, -0.003] (common/models/HISTORY.md), so compare recipes over seeds."""
 
 import argparse
-import contextlib
 import json
 import logging
 import os
@@ -125,45 +123,9 @@ def evaluate_world(seg, spec: str, *, frames: int, seed: int, rng, facing: Cls |
     return entry, draws, paired
 
 
-@contextlib.contextmanager
-def one_cpu():
-    """Every thread of this process pinned to one CPU (the last it may use) while inside; yields
-    that CPU, or None where threads cannot be pinned (not Linux). One onnxruntime thread is not
-    the whole of one core: numpy's BLAS (the border classifier's matrix products) and OpenCV
-    keep thread pools of their own, which would otherwise run on the second core."""
-    try:
-        cpus = os.sched_getaffinity(0)
-        tids = [int(t) for t in os.listdir("/proc/self/task")]
-    except (AttributeError, OSError):
-        yield None
-        return
-    cpu, pinned = max(cpus), []
-    try:
-        for tid in tids:  # Linux: a thread id is a pid to sched_setaffinity
-            try:
-                os.sched_setaffinity(tid, {cpu})
-                pinned.append(tid)
-            except OSError:  # the thread ended meanwhile
-                pass
-        yield cpu
-    finally:
-        for tid in pinned:
-            try:
-                os.sched_setaffinity(tid, cpus)
-            except OSError:
-                pass
-
-
 def speed(seg, frames: list, *, repeats: int) -> dict:
     """p50/p95 of `segment_model_size` (with its thread's CPU time) and of `segment()` over
-    `repeats` calls on the rendered `frames` in turn, after 5 warm-up calls, with the whole
-    process on one CPU (one_cpu)."""
-    with one_cpu() as cpu:
-        report = _timings(seg, frames, repeats=repeats)
-    return {**report, "pinned_cpu": cpu}
-
-
-def _timings(seg, frames: list, *, repeats: int) -> dict:
+    `repeats` calls on the rendered `frames` in turn, after 5 warm-up calls."""
     w, h = seg.input_size
     model_ms, model_cpu_ms, full_ms = [], [], []
     for i in range(repeats + 5):

@@ -1,9 +1,6 @@
 """The packaged model on frames of a world it never saw (Karlsruhe, rendered by the simulator):
 a floor well under the benchmark's targets, to catch a broken model, export or preprocessing."""
 
-import os
-from pathlib import Path
-
 import pytest
 
 from common.segmentation import DEFAULT_MODEL, get_segmenter
@@ -164,40 +161,3 @@ def test_paired_draws_score_both_models_on_the_same_frames():
     short.add(truth, truth)
     with pytest.raises(ValueError, match="frames"):
         good.draws(10, rng, minus=short)
-
-
-@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="pinning threads needs Linux")
-def test_speed_runs_every_thread_on_one_cpu():
-    """bench speed(): one onnxruntime thread is not one core while BLAS and OpenCV pools run
-    beside it; one_cpu pins every thread of the process, a thread started inside inherits it,
-    and leaving gives each its CPUs back."""
-    import importlib.util
-    import threading
-
-    path = Path(__file__).resolve().parents[2] / "bench" / "bench_segmentation.py"
-    spec = importlib.util.spec_from_file_location("bench_segmentation", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    before = os.sched_getaffinity(0)
-    seen = {}
-    ready, release = threading.Event(), threading.Event()
-
-    def idle():
-        ready.set()
-        release.wait(10)
-
-    old = threading.Thread(target=idle)
-    old.start()
-    ready.wait(10)
-    with bench.one_cpu() as cpu:
-        assert cpu == max(before)
-        inside = threading.Thread(target=lambda: seen.update(new=os.sched_getaffinity(0)))
-        inside.start()
-        inside.join()
-        seen["all"] = {int(t): os.sched_getaffinity(int(t)) for t in os.listdir("/proc/self/task")}
-    after = os.sched_getaffinity(0)
-    release.set()
-    old.join()
-    assert seen["new"] == {cpu}
-    assert seen["all"] and all(cpus == {cpu} for cpus in seen["all"].values())
-    assert after == before
