@@ -220,6 +220,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="add WEIGHT x the cross-entropy against --init's flip-averaged class "
                         "probabilities (the teacher, frozen) to the loss, so that one pass "
                         "learns what the runtime's two passes decide (default 0: off)")
+    p.add_argument("--teacher", default=None, metavar="MODEL.onnx",
+                   help="with --distill: the teacher, an exported RoadSegNet of the same "
+                        "depths (any widths), e.g. the packaged model for a network pruned "
+                        "from it (default: --init)")
     p.add_argument("--bf16", action="store_true",
                    help="run the training forward pass under bfloat16 autocast (weights, "
                         "optimizer and loss stay float32): 0.69-0.75x float32's time a step on "

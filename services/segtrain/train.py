@@ -51,7 +51,8 @@ def train_command(args, cfg) -> int:
     check_mirror(args.mirror_consistency, args.batch)
     check_ema(args.ema)
     check_average_init(args.average_init, args.init)
-    check_distill(args.distill, args.init, args.crop == "full" and not args.stream)
+    check_distill(args.distill, args.init, args.crop == "full" and not args.stream,
+                  args.teacher)
     check_full_after(args.full_after, args.crop)
     for weights in export_weights(args):
         if not Path(weights).is_file():
@@ -174,7 +175,8 @@ def run_options(args, frame_hw) -> dict:
     return {"device": args.device, "batch": args.batch, "init": args.init,
             "iou_loss": args.iou_loss, "arch": args.arch, "hard_pixels": args.hard_pixels,
             "mirror": args.mirror_consistency, "ema": args.ema,
-            "average_init": args.average_init, "distill": args.distill, "bf16": args.bf16,
+            "average_init": args.average_init, "distill": args.distill,
+            "teacher": args.teacher, "bf16": args.bf16,
             "crop_hw": crop_size(args.crop, frame_hw), "full_after": args.full_after}
 
 
@@ -235,7 +237,7 @@ def _train_soup(args, out: Path, t_start: float) -> int:
               **{key: runs[0][key] for key in ("class_weights", "lr_max", "seed", "device",
                                                "batch", "init", "arch", "iou_loss_weight",
                                                "hard_pixels", "mirror_consistency", "average_init",
-                                               "distill", "bf16", "crop_hw",
+                                               "distill", "teacher", "bf16", "crop_hw",
                                                "full_after")},
               **exported}
     return _finish(args, out, result, t_start)
@@ -431,6 +433,7 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
         + ([f"--ema {args.ema:g}"] if args.ema else [])
         + ([f"--average-init {args.average_init:g}"] if args.average_init else [])
         + ([f"--distill {args.distill:g}"] if args.distill else [])
+        + ([f"--teacher {args.teacher}"] if args.teacher else [])
         + (["--bf16"] if args.bf16 else [])
         + ([f"--soup {','.join(args.soup)}"] if args.soup else [])
         + ([f"--crop {args.crop}"] if args.crop != DEFAULT_CROP else [])
@@ -470,8 +473,8 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
                 iou_loss: float = 0.0, arch: str = "s", more=None,
                 capacity: int = 0, crop_hw: tuple[int, int] = CROP_HW,
                 hard_pixels: float = 1.0, mirror: float = 0.0, ema: float = 0.0,
-                average_init: float = 0.0, distill: float = 0.0, bf16: bool = False,
-                full_after: float = 1.0):
+                average_init: float = 0.0, distill: float = 0.0, teacher: str | None = None,
+                bf16: bool = False, full_after: float = 1.0):
     """Train RoadSegNet of size `arch` (archs.ARCHS) for train_s seconds (or, with `steps`,
     for exactly that many steps, the schedule spread over them) on `device` (cpu: 2
     threads; cuda: the frames live on the GPU), from scratch or, with `init`, from a trained
@@ -483,8 +486,9 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     steps (WeightAverage; the last step's are saved as roadseg-last.pt); with `average_init`
     > 0, they are (1 - average_init) x the trained weights + average_init x `init`'s (the
     trained ones saved as roadseg-trained.pt); with `distill` > 0, `distill` x the
-    class-weighted cross-entropy against `init`'s flip-averaged class probabilities joins the
-    loss (distillation_loss); with `bf16`, the forward pass runs under bfloat16 autocast
+    class-weighted cross-entropy against the flip-averaged class probabilities of `teacher`
+    (an exported RoadSegNet; default `init`) joins the loss (distillation_loss); with
+    `bf16`, the forward pass runs under bfloat16 autocast
     (weights, optimizer and loss stay float32); with `more`
     (FrameStream.take) frames keep arriving while it trains, up to `capacity` in all;
     batches are random `crop_hw` (H, W) windows of the frames (the whole frame when it is the
@@ -520,15 +524,17 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     start = ({k: v.detach().clone() for k, v in model.state_dict().items()}
              if average_init else None)
     whole = tuple(crop_hw) == tuple(frames.shape[1:3])
-    check_distill(distill, init, more is None and whole)
+    check_distill(distill, init, more is None and whole, teacher)
     check_full_after(full_after, "full" if whole else "crops")
     model = model.to(dev)
     targets = None
     if distill:
         t_teach = time.perf_counter()
-        targets = teacher_logits(_frozen_copy(model), x_all[:n_loaded])
-        logger.info("teacher's flip-averaged logits of %d frames in %.0f s", n_loaded,
-                    time.perf_counter() - t_teach)
+        teaching = _frozen_copy(_teacher_model(teacher, model).to(dev) if teacher else model)
+        targets = teacher_logits(teaching, x_all[:n_loaded])
+        del teaching
+        logger.info("%s's flip-averaged logits of %d frames in %.0f s", teacher or "--init",
+                    n_loaded, time.perf_counter() - t_teach)
     lr_max = LR_FINETUNE if init else LR_MAX
     opt = torch.optim.AdamW(model.parameters(), lr=lr_max, weight_decay=1e-4)
     check_hard_pixels(hard_pixels)
@@ -610,7 +616,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
         "batch": batch, "init": init, "lr_max": lr_max,
         "iou_loss_weight": iou_loss, "hard_pixels": hard_pixels, "arch": arch,
         "mirror_consistency": mirror, "ema": ema, "average_init": average_init,
-        "distill": distill, "bf16": bf16, "crop_hw": list(crop_hw),
+        "distill": distill, "teacher": teacher, "bf16": bf16, "crop_hw": list(crop_hw),
         "full_after": full_after,
     }
 
@@ -806,15 +812,37 @@ def check_full_after(frac: float, crop: str) -> None:
                           "throughout; leave one out")
 
 
-def check_distill(weight: float, init: str | None, whole_frames: bool = True) -> None:
-    """--distill needs --init (the teacher), a weight >= 0 (0: off) and whole frames (the
-    teacher's outputs are computed once per frame)."""
+def check_distill(weight: float, init: str | None, whole_frames: bool = True,
+                  teacher: str | None = None) -> None:
+    """--distill needs a teacher (--teacher, an exported model, or else --init), a weight >=
+    0 (0: off) and whole frames (the teacher's outputs are computed once per frame);
+    --teacher needs --distill."""
     if weight < 0:
         raise ConfigError(f"--distill {weight:g}: the weight must be >= 0 (0: off)")
-    if weight and not init:
-        raise ConfigError("--distill: distils --init's flip-averaged output; give --init")
+    if teacher is not None:
+        if not weight:
+            raise ConfigError("--teacher is the --distill teacher: give --distill WEIGHT")
+        if not str(teacher).endswith(".onnx") or not Path(teacher).is_file():
+            raise ConfigError(f"--teacher {teacher}: an exported RoadSegNet (.onnx) file")
+    if weight and not (init or teacher):
+        raise ConfigError("--distill: distils --init's (or --teacher's) flip-averaged output; "
+                          "give --init or --teacher")
     if weight and not whole_frames:
         raise ConfigError("--distill needs whole frames: give --crop full, and no --stream")
+
+
+def _teacher_model(path: str, student):
+    """The RoadSegNet exported as `path` (its own widths, `student`'s depths, rows, head and
+    classes), in eval mode: a teacher wider than its student, e.g. the model it was pruned
+    from."""
+    from services.segtrain.net import RoadSegNet, load_onnx_weights, onnx_widths
+
+    s2 = student.subpixel ** 2
+    teacher = RoadSegNet(widths=onnx_widths(path), num_classes=student.head.out_channels // s2,
+                         depths=student.arch["depths"], rows=student.arch["rows"],
+                         subpixel=student.subpixel)
+    load_onnx_weights(teacher, path)
+    return teacher.eval()
 
 
 def _frozen_copy(model):

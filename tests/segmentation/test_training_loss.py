@@ -368,13 +368,42 @@ def test_a_distilled_run_trains_towards_its_init_and_says_so(tmp_path):
     assert log["steps"] == 4 and np.isfinite(log["final_loss"])
 
 
+def test_a_teacher_wider_than_its_student_is_the_exported_model():
+    """--teacher: the packaged export, loaded at its own widths beside a pruned student (p16):
+    the teacher's logits are the file's (its curb class folded into none as the export does)."""
+    import onnxruntime as ort
+
+    from services.segtrain.archs import ARCHS
+    from services.segtrain.net import RoadSegNet
+    from services.segtrain.train import _frozen_copy, _teacher_model
+
+    student = RoadSegNet(num_classes=CLASSES, **ARCHS["p16"])
+    teacher = _frozen_copy(_teacher_model(str(DEFAULT_MODEL), student))
+    assert teacher.arch["widths"] != student.arch["widths"] and not teacher.training
+    x = torch.rand(1, 3, 32, 640)  # the export's width is fixed
+    teacher.half_res_logits = True
+    with torch.no_grad():
+        logits = teacher(x)
+    folded = torch.cat([torch.maximum(logits[:, :1], logits[:, CLASSES - 1:]),
+                        logits[:, 1:CLASSES - 1]], 1)
+    session = ort.InferenceSession(str(DEFAULT_MODEL), providers=["CPUExecutionProvider"])
+    want = session.run(None, {session.get_inputs()[0].name: x.numpy()})[0]
+    np.testing.assert_allclose(folded.numpy(), want, atol=1e-4)
+
+
 def test_distillation_needs_a_teacher_and_whole_frames(tmp_path, capsys):
     from services.cli import main
 
     out = tmp_path / "out"
     assert main(["train-seg", "--out", str(out), "--distill", "1", "--crop", "full"]) == 1
-    assert "--distill: distils --init's flip-averaged output; give --init" in (
+    assert "--distill: distils --init's (or --teacher's) flip-averaged output" in (
         capsys.readouterr().err)
+    assert main(["train-seg", "--out", str(out), "--teacher", str(DEFAULT_MODEL),
+                 "--crop", "full"]) == 1
+    assert "--teacher is the --distill teacher" in capsys.readouterr().err
+    assert main(["train-seg", "--out", str(out), "--distill", "1", "--crop", "full",
+                 "--teacher", str(out / "absent.onnx")]) == 1
+    assert "an exported RoadSegNet (.onnx) file" in capsys.readouterr().err
     assert main(["train-seg", "--out", str(out), "--distill", "1",
                  "--init", str(DEFAULT_MODEL)]) == 1  # random crops by default
     assert "--distill needs whole frames" in capsys.readouterr().err
