@@ -229,6 +229,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "optimizer and loss stay float32): 0.69-0.75x float32's time a step on "
                         "a 2-core EPYC with AVX-512 BF16, bench/bench_train_step.py (default "
                         "off: float32)")
+    p.add_argument("--stream-junctions", default=None, type=lambda v: v.split(","),
+                   metavar="D1,D2",
+                   help="with --stream: the towns' junction-line doses (light, heavy), chunk k "
+                        "of the stream drawn with dose k mod their number, one run on the mix "
+                        "(default: light)")
     p.add_argument("--soup", default=None, type=lambda v: v.split(","), metavar="D1,D2",
                    help="one run per junction-line dose (light, heavy: services/segtrain/data.py "
                         "JUNCTIONS), --frames, the budgets or --steps shared out evenly, and "

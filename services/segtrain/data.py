@@ -192,8 +192,14 @@ class FrameStream:
     recipe, not bit for bit."""
 
     def __init__(self, *, seed: int, input_size: tuple[int, int], max_frames: int, workers: int,
-                 turn_prob: float = TURN_PROB, synth_share: float = SYNTH_SHARE):
+                 turn_prob: float = TURN_PROB, synth_share: float = SYNTH_SHARE,
+                 junctions: tuple[str, ...] = ("light",)):
+        """junctions: the towns' junction-line doses (JUNCTIONS), chunk k drawn with dose
+        k mod their number (training_set's chunks for one dose)."""
         import multiprocessing
+
+        for dose in junctions:
+            check_junctions(dose)
 
         self._dir = Path(tempfile.mkdtemp(prefix="roadmap-stream-"))
         self._n_chunks = -(-max_frames // CHUNK_FRAMES)
@@ -203,7 +209,8 @@ class FrameStream:
         sim = _sim_available()
         self._procs = [ctx.Process(target=_stream_worker, daemon=True,
                                    args=(self._dir, seed, i, workers, self._n_chunks,
-                                         tuple(input_size), sim, turn_prob, synth_share))
+                                         tuple(input_size), sim, turn_prob, synth_share,
+                                         tuple(junctions)))
                        for i in range(workers)]
         for proc in self._procs:
             proc.start()
@@ -266,7 +273,8 @@ def _stack(chunks: list):
 
 
 def _stream_worker(folder: Path, seed: int, index: int, workers: int, n_chunks: int,
-                   input_size, sim: bool, turn_prob: float, synth_share: float):
+                   input_size, sim: bool, turn_prob: float, synth_share: float,
+                   junctions: tuple[str, ...] = ("light",)):
     import os
     import traceback
 
@@ -277,7 +285,7 @@ def _stream_worker(folder: Path, seed: int, index: int, workers: int, n_chunks: 
             time.sleep(0.5)
         try:
             frames, labels = _render_chunk((seed, k, input_size, sim, turn_prob, synth_share,
-                                            "light"))
+                                            junctions[k % len(junctions)]))
         except Exception:
             (folder / f"{k}.err").write_text(traceback.format_exc())
             return

@@ -76,6 +76,12 @@ def train_command(args, cfg) -> int:
     if args.steps is not None and args.steps < 1:
         raise ConfigError(f"--steps {args.steps}: at least 1")
     check_soup(args)
+    if args.stream_junctions:
+        if not args.stream:
+            raise ConfigError("--stream-junctions: the junction-line doses of a streamed "
+                              "run's towns; give --stream (without it: --soup DOSE)")
+        for dose in args.stream_junctions:
+            seg_data.check_junctions(dose)
     if args.stream:
         if args.export_only:
             raise ConfigError("--export-only with --stream: it calibrates on a rendered run's "
@@ -389,7 +395,8 @@ def _train_streamed(args, out: Path, t_start: float) -> int:
         os.environ[var] = "1"  # for the render workers (spawned: they read it at import)
     stream = seg_data.FrameStream(seed=args.seed, input_size=INPUT_SIZE,
                                   max_frames=args.frames, workers=args.workers,
-                                  turn_prob=args.turn_prob, synth_share=args.synth_share)
+                                  turn_prob=args.turn_prob, synth_share=args.synth_share,
+                                  junctions=tuple(args.stream_junctions or ("light",)))
     try:
         frames, labels = stream.wait(min(STREAM_START_FRAMES, args.frames), timeout_s=30 * 60.0)
         render_s = time.perf_counter() - t_start
@@ -420,6 +427,8 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
         + [f"--frames {args.frames}", f"--workers {args.workers}"]
         + ([f"--render-minutes {args.render_minutes:g}"] if args.render_minutes else [])
         + (["--stream"] if args.stream else [])
+        + ([f"--stream-junctions {','.join(args.stream_junctions)}"]
+           if args.stream_junctions else [])
         + [f"--device {args.device}", f"--batch {args.batch}"]
         + ([f"--arch {args.arch}"] if args.arch != "s" else [])
         + ([f"--init {args.init}"] if args.init else [])

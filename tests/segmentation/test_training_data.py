@@ -212,6 +212,45 @@ def test_streamed_chunks_are_the_training_set_in_order_and_stopping_leaves_nothi
     assert not any(proc.is_alive() for proc in stream._procs)
 
 
+def test_a_stream_mixes_junction_doses_chunk_by_chunk(tmp_path, capsys):
+    """--stream-junctions light,heavy: chunk k of the stream is training_set's chunk k of
+    dose k mod 2; a dose it does not know, or the flag without --stream, is refused before
+    anything renders."""
+    from services.cli import main
+    from services.segtrain.data import (
+        CHUNK_FRAMES,
+        SYNTH_SHARE,
+        TURN_PROB,
+        FrameStream,
+        _render_chunk,
+        _sim_available,
+    )
+
+    size = (160, 96)
+    stream = FrameStream(seed=3, input_size=size, max_frames=2 * CHUNK_FRAMES, workers=2,
+                         junctions=("light", "heavy"))
+    try:
+        got_f, got_l = stream.wait(2 * CHUNK_FRAMES, timeout_s=300)
+    finally:
+        stream.close()
+    # chunk 0 is the light one every stream starts with (the test above); chunk 1:
+    job = (3, 1, size, _sim_available(), TURN_PROB, SYNTH_SHARE)
+    want_f, want_l = _render_chunk((*job, "heavy"))
+    assert np.array_equal(got_f[CHUNK_FRAMES:], want_f)
+    assert np.array_equal(got_l[CHUNK_FRAMES:], want_l)
+    assert not np.array_equal(want_l, _render_chunk((*job, "light"))[1])  # the dose tells
+    with pytest.raises(ConfigError, match="junction lines 'none'"):
+        FrameStream(seed=3, input_size=size, max_frames=CHUNK_FRAMES, workers=1,
+                    junctions=("light", "none"))
+    out = tmp_path / "out"
+    assert main(["train-seg", "--out", str(out), "--stream-junctions", "heavy"]) == 1
+    assert "give --stream" in capsys.readouterr().err
+    assert main(["train-seg", "--out", str(out), "--stream", "--stream-junctions",
+                 "light,none"]) == 1
+    assert "junction lines 'none'" in capsys.readouterr().err
+    assert not any(out.iterdir())
+
+
 def test_training_crops_are_windows_of_the_frames_or_the_whole_frame():
     from services.segtrain.train import _crop_batch, crop_size
 
