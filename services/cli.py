@@ -217,9 +217,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "are saved as roadseg-trained.pt, with --soup the last run's; default "
                         "0: the trained ones)")
     p.add_argument("--distill", type=float, default=0.0, metavar="WEIGHT",
-                   help="add WEIGHT x the cross-entropy against --init's flip-averaged class "
-                        "probabilities (the teacher, frozen) to the loss, so that one pass "
-                        "learns what the runtime's two passes decide (default 0: off)")
+                   help="add WEIGHT x the cross-entropy against the teacher's (--teacher, "
+                        "else --init; frozen) flip-averaged class probabilities to the loss, "
+                        "so that one pass learns what the runtime's two passes decide "
+                        "(default 0: off)")
     p.add_argument("--teacher", default=None, metavar="MODEL.onnx",
                    help="with --distill: the teacher, an exported RoadSegNet of the same "
                         "depths (any widths), e.g. the packaged model for a network pruned "
