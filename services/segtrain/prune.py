@@ -141,6 +141,7 @@ def prune_command(args, out: Path, input_size) -> int:
         NO_RENDER_BUDGET_S,
         THREADS,
         _load_init,
+        check_export_file,
         class_weights,
         save_weights,
     )
@@ -155,8 +156,7 @@ def prune_command(args, out: Path, input_size) -> int:
                           "its 1/4-resolution width changed (the others as wide or wider)")
     if args.soup and len(args.soup) > 1:
         raise ConfigError("--prune: give one --soup dose (the towns of the frames)")
-    if not str(args.prune).endswith(".onnx") or not Path(args.prune).is_file():
-        raise ConfigError(f"--prune {args.prune}: an exported RoadSegNet (.onnx) file")
+    check_export_file("--prune", args.prune)
     t0 = time.perf_counter()
     torch.set_num_threads(THREADS)
     model = RoadSegNet(num_classes=seg_data.TRAIN_CLASSES, **source)

@@ -76,12 +76,9 @@ def train_command(args, cfg) -> int:
     if args.steps is not None and args.steps < 1:
         raise ConfigError(f"--steps {args.steps}: at least 1")
     check_soup(args)
-    if args.stream_junctions:
-        if not args.stream:
-            raise ConfigError("--stream-junctions: the junction-line doses of a streamed "
-                              "run's towns; give --stream (without it: --soup DOSE)")
-        for dose in args.stream_junctions:
-            seg_data.check_junctions(dose)
+    if args.stream_junctions and not args.stream:  # FrameStream checks the doses
+        raise ConfigError("--stream-junctions: the junction-line doses of a streamed run's "
+                          "towns; give --stream (without it: --soup DOSE)")
     if args.stream:
         if args.export_only:
             raise ConfigError("--export-only with --stream: it calibrates on a rendered run's "
@@ -539,7 +536,8 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     targets = None
     if distill:
         t_teach = time.perf_counter()
-        teaching = _frozen_copy(_teacher_model(teacher, model).to(dev) if teacher else model)
+        teaching = _frozen_copy(exported_model_like(teacher, model).to(dev) if teacher
+                                else model)
         targets = teacher_logits(teaching, x_all[:n_loaded])
         del teaching
         logger.info("%s's flip-averaged logits of %d frames in %.0f s", teacher or "--init",
@@ -698,18 +696,14 @@ def _load_init(model, init: str) -> bool:
     and the loss went from 0.12 to 0.51 in the first 100 steps."""
     import torch
 
-    from services.segtrain.net import RoadSegNet, load_onnx_weights, onnx_widths, widen
+    from services.segtrain.net import load_onnx_weights, onnx_widths, widen
 
     if str(init).endswith(".onnx"):
         widths = onnx_widths(init)
         if widths == model.arch["widths"]:
             load_onnx_weights(model, init)
             return True
-        s2 = model.subpixel ** 2
-        other = RoadSegNet(widths=widths, num_classes=model.head.out_channels // s2,
-                           depths=model.arch["depths"], rows=model.arch["rows"],
-                           subpixel=model.subpixel)
-        load_onnx_weights(other, init)
+        other = exported_model_like(init, model)
         if all(a >= b for a, b in zip(widths, model.arch["widths"], strict=True)):
             _narrow_checked(other, model, init)  # e.g. an export's zero padding channels
         else:  # a narrower model's weights, new channels added (net.widen)
@@ -831,8 +825,7 @@ def check_distill(weight: float, init: str | None, whole_frames: bool = True,
     if teacher is not None:
         if not weight:
             raise ConfigError("--teacher is the --distill teacher: give --distill WEIGHT")
-        if not str(teacher).endswith(".onnx") or not Path(teacher).is_file():
-            raise ConfigError(f"--teacher {teacher}: an exported RoadSegNet (.onnx) file")
+        check_export_file("--teacher", teacher)
     if weight and not (init or teacher):
         raise ConfigError("--distill: distils --init's (or --teacher's) flip-averaged output; "
                           "give --init or --teacher")
@@ -840,18 +833,24 @@ def check_distill(weight: float, init: str | None, whole_frames: bool = True,
         raise ConfigError("--distill needs whole frames: give --crop full, and no --stream")
 
 
-def _teacher_model(path: str, student):
-    """The RoadSegNet exported as `path` (its own widths, `student`'s depths, rows, head and
-    classes), in eval mode: a teacher wider than its student, e.g. the model it was pruned
-    from."""
+def check_export_file(flag: str, path) -> None:
+    """`flag`'s value must be an existing exported RoadSegNet (.onnx) file."""
+    if not str(path).endswith(".onnx") or not Path(path).is_file():
+        raise ConfigError(f"{flag} {path}: an exported RoadSegNet (.onnx) file")
+
+
+def exported_model_like(path, model):
+    """The RoadSegNet exported as `path`, at the file's own widths with `model`'s depths, rows,
+    head and classes (training mode, as built): an --init of other widths before it is
+    narrowed or widened into `model`, or a teacher wider than its student."""
     from services.segtrain.net import RoadSegNet, load_onnx_weights, onnx_widths
 
-    s2 = student.subpixel ** 2
-    teacher = RoadSegNet(widths=onnx_widths(path), num_classes=student.head.out_channels // s2,
-                         depths=student.arch["depths"], rows=student.arch["rows"],
-                         subpixel=student.subpixel)
-    load_onnx_weights(teacher, path)
-    return teacher.eval()
+    s2 = model.subpixel ** 2
+    other = RoadSegNet(widths=onnx_widths(path), num_classes=model.head.out_channels // s2,
+                       depths=model.arch["depths"], rows=model.arch["rows"],
+                       subpixel=model.subpixel)
+    load_onnx_weights(other, path)
+    return other
 
 
 def _frozen_copy(model):

@@ -375,10 +375,10 @@ def test_a_teacher_wider_than_its_student_is_the_exported_model():
 
     from services.segtrain.archs import ARCHS
     from services.segtrain.net import RoadSegNet
-    from services.segtrain.train import _frozen_copy, _teacher_model
+    from services.segtrain.train import _frozen_copy, exported_model_like
 
     student = RoadSegNet(num_classes=CLASSES, **ARCHS["p16"])
-    teacher = _frozen_copy(_teacher_model(str(DEFAULT_MODEL), student))
+    teacher = _frozen_copy(exported_model_like(str(DEFAULT_MODEL), student))
     assert teacher.arch["widths"] != student.arch["widths"] and not teacher.training
     x = torch.rand(1, 3, 32, 640)  # the export's width is fixed
     teacher.half_res_logits = True
