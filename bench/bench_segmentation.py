@@ -20,7 +20,8 @@ full resolution (labels resized back from the model's input size), and also insi
 product runs it: the rows above rays rising segmentation.sky_margin_deg above level (the
 nominal camera's `sky_rows`) are not segmented (`--sky-margin-deg -1`: every row). Speed:
 p50/p95 ms of `segment_model_size` (resize, network, upsampling, argmax, border refinement) at
-the model's input size with one onnxruntime thread, and of the whole `segment()` call at full
+the model's input size on one core (one onnxruntime thread, OpenCV and the border
+classifier's BLAS held to one thread), and of the whole `segment()` call at full
 size, on the held-out route frames themselves (up to TIMED_FRAMES per world, in turn): until
 2026-11-25 it timed random noise, which has almost no paint borders to upsample and refine
 and so read 12 ms where road frames take 14.5 ms. `paint_gate`: precision and recall in the
@@ -125,7 +126,19 @@ def evaluate_world(seg, spec: str, *, frames: int, seed: int, rng, facing: Cls |
 
 def speed(seg, frames: list, *, repeats: int) -> dict:
     """p50/p95 of `segment_model_size` (with its thread's CPU time) and of `segment()` over
-    `repeats` calls on the rendered `frames` in turn, after 5 warm-up calls."""
+    `repeats` calls on the rendered `frames` in turn, after 5 warm-up calls, on one core: the
+    segmenter's onnxruntime session and border classifier run one thread each, and OpenCV is
+    held to the calling thread while it is timed (until 2026-11-27 its resizes and flips, and
+    numpy's BLAS pool under the border classifier, could spread onto a second core)."""
+    opencv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        return _speed(seg, frames, repeats=repeats)
+    finally:
+        cv2.setNumThreads(opencv_threads)
+
+
+def _speed(seg, frames: list, *, repeats: int) -> dict:
     w, h = seg.input_size
     model_ms, model_cpu_ms, full_ms = [], [], []
     for i in range(repeats + 5):
@@ -144,7 +157,8 @@ def speed(seg, frames: list, *, repeats: int) -> dict:
     return {
         "input_size": list(seg.input_size), "threads": 1, "load_avg_1min": os.getloadavg()[0],
         "frames": "held-out route frames", "distinct_frames": len(frames),
-        "sky_rows": seg.sky_rows,
+        "sky_rows": seg.sky_rows, "opencv_threads": cv2.getNumThreads(),
+        "border_net_blas_threads": seg.border_net.threads if seg.border_net else None,
         "ms_p50": pct(model_ms, 50), "ms_p95": pct(model_ms, 95),
         # CPU time of the (single) inference thread: robust to other processes on the machine
         "cpu_ms_p50": pct(model_cpu_ms, 50), "cpu_ms_p95": pct(model_cpu_ms, 95),

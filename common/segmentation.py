@@ -8,11 +8,12 @@ import json
 import logging
 import os
 from dataclasses import dataclass
-from functools import partial
+from functools import cache, partial
 from pathlib import Path
 
 import cv2
 import numpy as np
+from threadpoolctl import ThreadpoolController
 
 from common.classes import NUM_CLASSES, Cls
 from common.errors import ConfigError
@@ -213,7 +214,7 @@ class OnnxSegmenter(Segmenter):
                 raise ConfigError(f"{path}: no border classifier for its own classes (metadata "
                                   "`border_net`; roadmap train-seg --border-only fits one)")
             border_net = meta["border_net"]
-        self.border_net = BorderNet(border_net) if border_net else None
+        self.border_net = BorderNet(border_net, intra_op_threads) if border_net else None
         if self.border_net and len(self.priority) != 1:
             raise ConfigError("border_net needs a model with one output head")
         # the network run on the image and on its mirror image, the mirror's scores mirrored
@@ -456,9 +457,14 @@ class BorderNet:
     `spec` (the model's metadata `border_net`): {"layers": [{"w": (in, out) nested lists, "b":
     (out,)}, ...], "max_margin": logits (optional: border pixels the network is surer of keep
     its label)}. About 2-3 ms a 640x360 road frame (a few thousand border pixels): 1.3 ms
-    more than refine_paint_borders at p50, 2.2 ms at p95 (common/models/HISTORY.md)."""
+    more than refine_paint_borders at p50, 2.2 ms at p95 (common/models/HISTORY.md).
 
-    def __init__(self, spec: dict):
+    The perceptron's matrix products run on at most `threads` BLAS threads (the segmenter's
+    own budget, OnnxSegmenter's intra_op_threads), not on the BLAS library's pool of one
+    thread per core: on a busy machine that pool's threads wait on each other, and the same
+    products took 40 ms instead of 1.8 (common/models/HISTORY.md, 2026-11-27 evening)."""
+
+    def __init__(self, spec: dict, threads: int = 1):
         try:
             self.layers = [(np.asarray(layer["w"], np.float32), np.asarray(layer["b"], np.float32))
                            for layer in spec["layers"]]
@@ -471,6 +477,9 @@ class BorderNet:
             raise ConfigError(f"border_net: layer shapes {shapes} do not chain "
                               f"{BORDER_FEATURES} features to {NUM_CLASSES} classes")
         self.max_margin = float(spec.get("max_margin", np.inf))
+        if threads < 1:
+            raise ConfigError(f"border_net: threads must be >= 1, got {threads}")
+        self.threads = int(threads)
         # (out, in) weights and (out, 1) biases, for features as columns
         self._columns = [(np.ascontiguousarray(w.T), b[:, None]) for w, b in self.layers]
 
@@ -478,11 +487,12 @@ class BorderNet:
         """(N, NUM_CLASSES) class scores of (N, BORDER_FEATURES) features, computed on their
         transpose (border_features' own layout: contiguous feature rows)."""
         x = features.T
-        for i, (w, b) in enumerate(self._columns):
-            x = w @ x
-            x += b
-            if i < len(self._columns) - 1:
-                np.maximum(x, 0, out=x)
+        with _blas().limit(limits=self.threads, user_api="blas"):
+            for i, (w, b) in enumerate(self._columns):
+                x = w @ x
+                x += b
+                if i < len(self._columns) - 1:
+                    np.maximum(x, 0, out=x)
         return x.T
 
     def __call__(self, gray: np.ndarray, labels: np.ndarray, score_at) -> np.ndarray:
@@ -494,6 +504,13 @@ class BorderNet:
         out = labels.copy()
         out.reshape(-1)[border] = argmax_channels(np.ascontiguousarray(decided))
         return out
+
+
+@cache
+def _blas() -> ThreadpoolController:
+    """The BLAS libraries loaded in this process (numpy's among them), looked up once: a
+    thread limit set through it costs ~0.01 ms."""
+    return ThreadpoolController()
 
 
 def unsure_paint_border(labels: np.ndarray, score_at, max_margin: float = np.inf,

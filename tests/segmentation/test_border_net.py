@@ -3,6 +3,7 @@ its fitting (the fitting tests need the optional torch extra)."""
 
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_info
 
 from common.classes import NUM_CLASSES, Cls
 from common.config import SegmentationConfig
@@ -123,6 +124,40 @@ def test_a_malformed_spec_is_refused():
     with pytest.raises(ConfigError, match="do not chain"):
         BorderNet({"layers": [{"w": np.zeros((10, NUM_CLASSES)).tolist(),
                                "b": [0.0] * NUM_CLASSES}]})
+
+
+def _blas_threads() -> set[int]:
+    return {lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"}
+
+
+class _BlasProbe(np.ndarray):
+    """A weight matrix that notes the BLAS libraries' thread counts when it is multiplied."""
+
+    seen: list[set[int]] = []
+
+    def __matmul__(self, other):
+        _BlasProbe.seen.append(_blas_threads())
+        return np.asarray(self) @ other
+
+
+@pytest.mark.skipif(max(_blas_threads(), default=1) < 2, reason="BLAS runs one thread here")
+def test_the_perceptron_runs_on_the_segmenters_threads_not_the_blas_pool():
+    rng = np.random.default_rng(0)
+    spec = {"layers": [{"w": rng.normal(size=(BORDER_FEATURES, 16)).tolist(), "b": [0.1] * 16},
+                       {"w": rng.normal(size=(16, NUM_CLASSES)).tolist(),
+                        "b": [0.0] * NUM_CLASSES}]}
+    feats = rng.normal(size=(5000, BORDER_FEATURES)).astype(np.float32)
+    pool = _blas_threads()
+    plain = BorderNet(spec).scores(feats)
+    net = BorderNet(spec, threads=1)
+    w, b = net._columns[0]
+    net._columns[0] = (w.view(_BlasProbe), b)
+    _BlasProbe.seen.clear()
+    np.testing.assert_allclose(net.scores(feats), plain, rtol=1e-5, atol=1e-4)
+    assert _BlasProbe.seen == [{1}]  # limited while it ran
+    assert _blas_threads() == pool  # and given back after
+    with pytest.raises(ConfigError, match="threads"):
+        BorderNet(spec, threads=0)
 
 
 needs_model = pytest.mark.skipif(not DEFAULT_MODEL.is_file(), reason="no packaged model")
