@@ -462,7 +462,9 @@ class BorderNet:
     The perceptron's matrix products run on at most `threads` BLAS threads (the segmenter's
     own budget, OnnxSegmenter's intra_op_threads), not on the BLAS library's pool of one
     thread per core: on a busy machine that pool's threads wait on each other, and the same
-    products took 40 ms instead of 1.8 (common/models/HISTORY.md, 2026-11-27 evening)."""
+    products took 40 ms instead of 1.8 (common/models/HISTORY.md, 2026-11-27 evening). The
+    limit is the process's while the products run: BLAS calls of other threads of the same
+    process meanwhile get it too."""
 
     def __init__(self, spec: dict, threads: int = 1):
         try:
