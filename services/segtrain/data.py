@@ -274,7 +274,7 @@ def _stack(chunks: list):
 
 def _stream_worker(folder: Path, seed: int, index: int, workers: int, n_chunks: int,
                    input_size, sim: bool, turn_prob: float, synth_share: float,
-                   junctions: tuple[str, ...] = ("light",)):
+                   junctions: tuple[str, ...]):
     import os
     import traceback
 
