@@ -222,9 +222,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "so that one pass learns what the runtime's two passes decide "
                         "(default 0: off)")
     p.add_argument("--teacher", default=None, metavar="MODEL.onnx",
-                   help="with --distill: the teacher, an exported RoadSegNet of the same "
-                        "depths (any widths), e.g. the packaged model for a network pruned "
-                        "from it (default: --init)")
+                   help="with --distill: the teacher, an exported RoadSegNet of any size "
+                        "(run by onnxruntime), e.g. a larger network (--arch xl) or the "
+                        "packaged model for a network pruned from it (default: --init)")
     p.add_argument("--bf16", action="store_true",
                    help="run the training forward pass under bfloat16 autocast (weights, "
                         "optimizer and loss stay float32): 0.69-0.75x float32's time a step on "

@@ -22,3 +22,6 @@ ARCHS["s-sub"] = {**ARCHS["s"], "subpixel": 2}
 # decoder then reads 16 upsampled channels instead of 32 padded ones) and the rest at the widths
 # the blocked convolutions compute anyway: 5.6 against 7.9 ms a pass (one thread, 640x312)
 ARCHS["p16"] = {**ARCHS["s"], "widths": [16, 16, 48, 64]}
+# A capacity probe, not a product size: 16x "s"'s parameters (410 k), about 3x its 1/2-resolution
+# work. It asks whether a larger network learns more from the same towns (stop 47's GPU run).
+ARCHS["xl"] = {"widths": [32, 48, 128, 192], "depths": [2, 4, 6], "rows": False}

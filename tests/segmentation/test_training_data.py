@@ -262,13 +262,30 @@ def test_training_crops_are_windows_of_the_frames_or_the_whole_frame():
     rng = np.random.default_rng(0)
     x = np.arange(2 * 3 * 360 * 640).reshape(2, 3, 360, 640)
     y = x[:, 0] % 7
-    xb, yb, top = _crop_batch(x, y, rng, (360, 640))
-    assert top == 0 and np.array_equal(xb, x) and np.array_equal(yb, y)
-    xb, yb, top = _crop_batch(x, y, rng, (224, 384))
+    xb, yb, top, half = _crop_batch(x, y, rng, (360, 640))
+    assert top == 0 and np.array_equal(xb, x) and np.array_equal(yb, y) and half is None
+    xb, yb, top, _ = _crop_batch(x, y, rng, (224, 384))
     assert xb.shape == (2, 3, 224, 384) and yb.shape == (2, 224, 384)
     left = int(xb[0, 0, 0, 0]) - top * 640  # x holds each pixel's flat index
     assert np.array_equal(xb, x[:, :, top:top + 224, left:left + 384])
     assert np.array_equal(yb, y[:, top:top + 224, left:left + 384])
+
+
+def test_a_teachers_half_resolution_logits_are_cropped_with_the_frame():
+    """With a teacher's 1/2-resolution logits, crops start on even rows and columns, and the
+    logits' crop covers the same pixels of the frame."""
+    from services.segtrain.train import _crop_batch
+
+    rng = np.random.default_rng(1)
+    x = np.arange(2 * 3 * 360 * 640).reshape(2, 3, 360, 640)
+    half = x[:, :, ::2, ::2]  # each 1/2-resolution cell holds its top-left pixel's index
+    for _ in range(20):
+        xb, _, top, hb = _crop_batch(x, x[:, 0] % 7, rng, (224, 384), half)
+        left = int(xb[0, 0, 0, 0]) - top * 640
+        assert top % 2 == 0 and left % 2 == 0
+        assert hb.shape == (2, 3, 112, 192) and np.array_equal(hb, xb[:, :, ::2, ::2])
+    with pytest.raises(ConfigError, match="even crop"):
+        _crop_batch(x, x[:, 0] % 7, rng, (225, 384), half)
 
 
 def test_streamed_held_out_halves_have_the_training_mix():

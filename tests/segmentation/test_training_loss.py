@@ -368,30 +368,45 @@ def test_a_distilled_run_trains_towards_its_init_and_says_so(tmp_path):
     assert log["steps"] == 4 and np.isfinite(log["final_loss"])
 
 
-def test_a_teacher_wider_than_its_student_is_the_exported_model():
-    """--teacher: the packaged export, loaded at its own widths beside a pruned student (p16):
-    the teacher's logits are the file's (its curb class folded into none as the export does)."""
-    import onnxruntime as ort
+def test_a_run_from_scratch_on_crops_distils_an_exported_teacher(tmp_path):
+    """--teacher without --init, on random crops (the default): the teacher's logits are
+    computed once per frame and cropped with each batch."""
+    from services.cli import main
 
+    out = tmp_path / "distil-crops"
+    assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "24", "--steps", "4",
+                 "--batch", "2", "--workers", "1", "--no-cache", "--arch", "p16",
+                 "--distill", "1", "--teacher", str(DEFAULT_MODEL), "--no-flip-average"]) == 0
+    log = json.loads((out / "train_log.json").read_text())
+    assert log["teacher"] == str(DEFAULT_MODEL) and log["init"] is None
+    assert log["crop_hw"] == [224, 384] and "--teacher" in log["command"]
+    assert log["steps"] == 4 and np.isfinite(log["final_loss"])
+
+
+def test_an_exported_teacher_gives_its_heads_flip_averaged_logits_through_onnxruntime():
+    """--teacher: the packaged export, run by onnxruntime, gives what the file's network loaded
+    into torch gives: the flip-averaged logits of every trained class (the curb class too,
+    before the export folds it into none), at 1/2 resolution, in float16."""
     from services.segtrain.archs import ARCHS
     from services.segtrain.net import RoadSegNet
-    from services.segtrain.train import _frozen_copy, exported_model_like
+    from services.segtrain.train import (
+        _frozen_copy,
+        exported_model_like,
+        onnx_teacher_logits,
+        teacher_logits,
+    )
 
     student = RoadSegNet(num_classes=CLASSES, **ARCHS["p16"])
     teacher = _frozen_copy(exported_model_like(str(DEFAULT_MODEL), student))
-    assert teacher.arch["widths"] != student.arch["widths"] and not teacher.training
-    x = torch.rand(1, 3, 32, 640)  # the export's width is fixed
-    teacher.half_res_logits = True
-    with torch.no_grad():
-        logits = teacher(x)
-    folded = torch.cat([torch.maximum(logits[:, :1], logits[:, CLASSES - 1:]),
-                        logits[:, 1:CLASSES - 1]], 1)
-    session = ort.InferenceSession(str(DEFAULT_MODEL), providers=["CPUExecutionProvider"])
-    want = session.run(None, {session.get_inputs()[0].name: x.numpy()})[0]
-    np.testing.assert_allclose(folded.numpy(), want, atol=1e-4)
+    x = (torch.rand(2, 3, 32, 640) * 255).to(torch.uint8)  # the export's width is fixed
+    got = onnx_teacher_logits(str(DEFAULT_MODEL), x, threads=1)
+    want = teacher_logits(teacher, x)
+    assert got.dtype == torch.float16 and got.shape == (2, CLASSES, 16, 320)
+    np.testing.assert_allclose(got.float().numpy(), want.float().numpy(), atol=0.02)
+    assert not np.allclose(got[0].float().numpy(), got[1].float().numpy())
 
 
-def test_distillation_needs_a_teacher_and_whole_frames(tmp_path, capsys):
+def test_distillation_needs_a_teacher_and_frames_at_the_start(tmp_path, capsys):
     from services.cli import main
 
     out = tmp_path / "out"
@@ -404,9 +419,9 @@ def test_distillation_needs_a_teacher_and_whole_frames(tmp_path, capsys):
     assert main(["train-seg", "--out", str(out), "--distill", "1", "--crop", "full",
                  "--teacher", str(out / "absent.onnx")]) == 1
     assert "an exported RoadSegNet (.onnx) file" in capsys.readouterr().err
-    assert main(["train-seg", "--out", str(out), "--distill", "1",
-                 "--init", str(DEFAULT_MODEL)]) == 1  # random crops by default
-    assert "--distill needs whole frames" in capsys.readouterr().err
+    assert main(["train-seg", "--out", str(out), "--distill", "1", "--stream",
+                 "--init", str(DEFAULT_MODEL)]) == 1
+    assert "it cannot take --stream's frames" in capsys.readouterr().err
     assert main(["train-seg", "--out", str(out), "--distill", "-1", "--crop", "full",
                  "--init", str(DEFAULT_MODEL)]) == 1
     assert "must be >= 0" in capsys.readouterr().err
@@ -436,9 +451,9 @@ def test_full_after_trains_crops_then_whole_frames_and_says_so(tmp_path, monkeyp
     windows = []
     crop_batch = train._crop_batch
 
-    def recording(x, y, rng, crop_hw):
+    def recording(x, y, rng, crop_hw, half=None):
         windows.append(tuple(crop_hw))
-        return crop_batch(x, y, rng, crop_hw)
+        return crop_batch(x, y, rng, crop_hw, half)
 
     monkeypatch.setattr(train, "_crop_batch", recording)
     out = tmp_path / "full-after"
