@@ -535,7 +535,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     targets = None
     if distill:
         t_teach = time.perf_counter()
-        if teacher:  # an exported file: onnxruntime runs it 5-9x faster than torch here
+        if teacher:  # an exported file: onnxruntime on the CPU, about 5x faster than torch
             targets = onnx_teacher_logits(teacher, x_all[:n_loaded])
         else:
             targets = teacher_logits(_frozen_copy(model), x_all[:n_loaded])
@@ -896,7 +896,8 @@ def onnx_teacher_logits(path, x_u8, threads: int | None = None):
 
     Why not torch: a file of any depths loads as is, and on 2 CPU cores onnxruntime is 4.7x
     faster (the packaged model's logits of 16 frames: 1.70 s in torch, 0.36 s; of 4800 frames
-    in torch: 516 s); a 410 k-parameter teacher (archs "xl") took 371 s for 4800 frames."""
+    in torch: 516 s); a 410 k-parameter teacher (archs "xl") took 371 s for 4800 frames. It
+    runs on the CPU for a --device cuda run too, where torch on the GPU would be faster."""
     import onnx
     import onnxruntime as ort
     import torch
