@@ -909,18 +909,27 @@ def onnx_teacher_logits(path, x_u8, threads: int | None = None):
     opts.intra_op_num_threads = threads or torch.get_num_threads()
     session = ort.InferenceSession(proto.SerializeToString(), opts,
                                    providers=["CPUExecutionProvider"])
-    name = session.get_inputs()[0].name
-    out = None  # filled in place, as teacher_logits does
-    for i in range(len(x_u8)):
-        x = (x_u8[i:i + 1].cpu().numpy().astype(np.float32) / np.float32(255.0))
-        a = session.run([head.output[0]], {name: x})[0]
-        b = session.run([head.output[0]], {name: np.ascontiguousarray(x[..., ::-1])})[0]
-        logits = 0.5 * (a + b[..., ::-1])
-        if out is None:
-            out = torch.empty((len(x_u8),) + logits.shape[1:], dtype=torch.float16,
-                              device=x_u8.device)
-        out[i] = torch.from_numpy(logits[0].astype(np.float16))
-    return out
+    return teacher_logits(_OnnxHead(session, head.output[0]), x_u8)
+
+
+class _OnnxHead:
+    """An onnxruntime session's `output` as `teacher_logits` calls a teacher: float images
+    (N, 3, H, W) in [0, 1] -> that output (N, ...) on the images' device, one frame a run
+    (the export's batch is 1). Its logits are at 1/2 resolution whatever `half_res_logits` says."""
+
+    half_res_logits = True
+
+    def __init__(self, session, output: str):
+        self.session, self.output = session, output
+        self.input = session.get_inputs()[0].name
+
+    def __call__(self, x):
+        import torch
+
+        frames = x.cpu().numpy()
+        logits = [self.session.run([self.output], {self.input: frames[i:i + 1]})[0]
+                  for i in range(len(frames))]
+        return torch.from_numpy(np.concatenate(logits)).to(x.device)
 
 
 def distillation_loss(logits, target_logits, y, class_w):
