@@ -33,13 +33,24 @@ def undistort_normalized(uv: np.ndarray, K: np.ndarray, dist: np.ndarray, iters:
     xd = (uv[:, 0] - K[0, 2]) / K[0, 0]
     yd = (uv[:, 1] - K[1, 2]) / K[1, 1]
     x, y = xd.copy(), yd.copy()
+    tangential = p1 != 0.0 or p2 != 0.0  # without, dx and dy are +0.0: x = xd / radial exactly
     for _ in range(iters):
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-        x = (xd - dx) / radial
-        y = (yd - dy) / radial
+        r2 = x * x
+        r2 += y * y
+        radial = r2 * k3  # 1 + r2 (k1 + r2 (k2 + r2 k3)), in place, in the same order
+        radial += k2
+        radial *= r2
+        radial += k1
+        radial *= r2
+        radial += 1.0
+        if tangential:
+            dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+            dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+            x = (xd - dx) / radial
+            y = (yd - dy) / radial
+        else:
+            x = xd / radial
+            y = yd / radial
     return np.stack([x, y], axis=1)
 
 

@@ -52,3 +52,21 @@ def test_sky_rows_lie_above_the_rays_rising_the_margin_above_level():
     assert sky_rows(camera_from_config(dataclasses.replace(cfg, pitch_deg=40.0)), 10.0) == 0
     up = camera_from_config(dataclasses.replace(cfg, pitch_deg=-30.0))
     assert cfg.height * 0.8 < sky_rows(up, 10.0) <= cfg.height
+
+
+def test_undistortion_inverts_opencvs_distortion_with_and_without_tangential_terms(rng):
+    """undistort_normalized inverts OpenCV's model (k1, k2, p1, p2, k3), whether its tangential
+    terms are zero (the shortcut: x = xd / radial) or not."""
+    from common.camera import undistort_normalized
+
+    K = np.array([[460.0, 0.0, 321.3], [0.0, 455.0, 179.2], [0.0, 0.0, 1.0]])
+    xy = rng.uniform(-0.6, 0.6, (500, 2))
+    for dist in ([-0.08, 0.01, 0.0, 0.0, 0.0], [-0.2, 0.05, 0.001, -0.002, 0.01]):
+        k1, k2, p1, p2, k3 = dist
+        x, y = xy[:, 0], xy[:, 1]
+        r2 = x * x + y * y
+        radial = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        uv = np.column_stack([K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]])
+        np.testing.assert_allclose(undistort_normalized(uv, K, np.array(dist)), xy, atol=1e-9)

@@ -58,6 +58,14 @@ class WorldRaster:
         tr, tc = r % TEXTURE, c % TEXTURE
         return lab, self.fine[tr, tc], self.coarse[tr, tc], self.wear[tr, tc]
 
+    def labels_at(self, xy_world):
+        """World points (N, 2) -> the label of the nearest cell; 0 outside."""
+        c = np.floor((xy_world[:, 0] - self.x0) / CELL_M).astype(np.int64)
+        r = np.floor((xy_world[:, 1] - self.y0) / CELL_M).astype(np.int64)
+        h, w = self.labels.shape
+        ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+        return np.where(ok, self.labels[np.where(ok, r, 0), np.where(ok, c, 0)], 0)
+
 
 def _noise(shape, rng, scale):
     """Smooth noise in [-1, 1] of feature size ~scale cells (bilinear upsampled random grid)."""
@@ -125,14 +133,17 @@ class GroundMap:
         self.camera, self.ss = camera, supersample
         w, h, k = camera.width, camera.height, supersample
         self.uv, self.ground_v, self.hit, self.dist = _ground_at(camera, w, h, k)
+        # the sub-pixels that see the ground: the only ones whose world cells are sampled
+        self.on = np.flatnonzero(self.hit)
+        self.ground_on, self.dist_on = self.ground_v[self.on], self.dist[self.on]
         # Labels are the class at each pixel's centre, as the simulator's renderer labels its
         # frames (services/sim/render.py) and as the benchmark scores them. (Until 2026-11-26
         # they were the majority of the 2x2 sub-samples with ties to the lower class: road over
         # paint, so every line was labelled half a pixel thinner than drawn.)
         if k > 1:
-            _, self.centre_v, self.centre_hit, _ = _ground_at(camera, w, h, 1)
-        else:
-            self.centre_v, self.centre_hit = self.ground_v, self.hit
+            _, centre_v, centre_hit, _ = _ground_at(camera, w, h, 1)
+            self.centre_on = np.flatnonzero(centre_hit)
+            self.centre_ground_on = centre_v[self.centre_on]
 
 
 def _ground_at(camera: CameraModel, w: int, h: int, k: int):
@@ -151,20 +162,22 @@ def _ground_at(camera: CameraModel, w: int, h: int, k: int):
 def render(raster: WorldRaster, ground: GroundMap, pose, rng, curb_label=None):
     """-> (rgb (H, W, 3) uint8, labels (H, W) uint8) of the camera at vehicle pose (x, y, yaw).
     With `curb_label` (an auxiliary training class), curb face and top cells get that label
-    (else 0, none, like sidewalks)."""
+    (else 0, none, like sidewalks). Only the pixels that see the ground sample the world."""
     w, h = ground.camera.width, ground.camera.height
     R = rot_z(pose[2])[:2, :2]
-    xy = ground.ground_v @ R.T + [pose[0], pose[1]]
-    lab, fine, coarse, wear = raster.sample(xy)
-    lab = np.where(ground.hit, lab, 0)
+    lab, fine, coarse, wear = raster.sample(ground.ground_on @ R.T + [pose[0], pose[1]])
     style = _style(rng)
     rgb = _shade(lab, fine, coarse, wear, ground, h, style, rng)
     k = ground.ss
     rgb = rgb.reshape(h * k, w * k, 3)
     if k > 1:
         rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-        centre_lab = raster.sample(ground.centre_v @ R.T + [pose[0], pose[1]])[0]
-        lab = np.where(ground.centre_hit, centre_lab, 0)
+        lab = np.zeros(w * h, raster.labels.dtype)
+        lab[ground.centre_on] = raster.labels_at(ground.centre_ground_on @ R.T
+                                                 + [pose[0], pose[1]])
+    else:
+        lab = np.zeros(w * h, raster.labels.dtype)
+        lab[ground.on] = raster.labels_at(ground.ground_on @ R.T + [pose[0], pose[1]])
     curb = 0 if curb_label is None or style["curb"] is None else curb_label  # else: verge
     labels = np.where(lab == WALK, 0, np.where(lab > WALK, curb, lab))
     return _camera_effects(rgb, style, rng), labels.reshape(h, w).astype(np.uint8)
@@ -190,32 +203,38 @@ def _style(rng) -> dict:
 
 
 def _shade(lab, fine, coarse, wear, ground, h, s, rng):
-    hit, dist, uv = ground.hit, ground.dist, ground.uv
-    n = len(lab)
-    rgb = np.empty((n, 3), np.float32)
-    base = s["asphalt"] * (1.0 + 0.10 * fine[:, None] + 0.12 * coarse[:, None])
+    """The colours (H k * W k, 3) uint8 of the sub-pixels: those that see the ground from their
+    world cells' labels and textures (`lab`... sampled at `ground.on`), the rest sky. Each
+    material is computed on its own pixels only."""
+    on, uv = ground.on, ground.uv
+    rgb = np.empty((len(on), 3), np.float32)
     road = lab == Cls.ROAD
-    rgb[:] = s["verge"] * (1.0 + 0.25 * fine[:, None] + 0.2 * coarse[:, None])
-    rgb[road] = base[road]
+    paint = (lab >= Cls.LANE_LINE) & (lab < WALK)
+    asphalt = road | paint
+    verge = ~asphalt
     if s["curb"] is not None:
         for value, colour in ((CURB, s["curb"]), (FACE, s["curb"] * s["face"]),
                               (WALK, s["walk"])):
             m = lab == value
-            rgb[m] = (colour * (1.0 + 0.08 * fine[:, None] + 0.08 * coarse[:, None]))[m]
-    paint = (lab >= Cls.LANE_LINE) & (lab < WALK)
+            rgb[m] = colour * (1.0 + 0.08 * fine[m, None] + 0.08 * coarse[m, None])
+            verge &= ~m
+    rgb[verge] = s["verge"] * (1.0 + 0.25 * fine[verge, None] + 0.2 * coarse[verge, None])
+    base = s["asphalt"] * (1.0 + 0.10 * fine[asphalt, None] + 0.12 * coarse[asphalt, None])
+    rgb[road] = base[road[asphalt]]
     colour = np.array([s["paint"], s["paint"], s["paint"]])
     tint = np.array([s["paint"], s["paint"] * 0.8, 60.0]) if s["yellow"] else colour
-    pc = np.where((lab == Cls.LANE_LINE)[:, None], tint, colour)
-    worn = np.clip(1.0 - s["wear"] * (1.0 + wear), 0.25, 1.0)[:, None]
-    rgb[paint] = (worn * pc + (1 - worn) * base)[paint]
+    pc = np.where((lab[paint] == Cls.LANE_LINE)[:, None], tint, colour)
+    worn = np.clip(1.0 - s["wear"] * (1.0 + wear[paint]), 0.25, 1.0)[:, None]
+    rgb[paint] = worn * pc + (1 - worn) * base[paint[asphalt]]
     shadow = 1.0 - s["shadow"] * np.clip(coarse * 3.0 - 0.6, 0.0, 1.0)
     rgb *= (shadow * s["light"])[:, None]
-    fog = np.exp(-np.where(hit, dist, 0.0) / s["fog_m"])[:, None]
-    rgb = fog * rgb + (1 - fog) * s["sky"] * 0.9
-    sky = ~hit
+    fog = np.exp(-ground.dist_on / s["fog_m"])[:, None]
+    out = np.empty((len(uv), 3), np.uint8)
+    out[on] = np.clip(fog * rgb + (1 - fog) * s["sky"] * 0.9, 0, 255)
+    sky = ~ground.hit
     t = np.clip(uv[sky, 1] / h, 0.0, 1.0)[:, None]
-    rgb[sky] = s["sky"] * (0.8 + 0.2 * t) + rng.normal(0, 3, (int(sky.sum()), 3))
-    return np.clip(rgb, 0, 255).astype(np.uint8)
+    out[sky] = np.clip(s["sky"] * (0.8 + 0.2 * t) + rng.normal(0, 3, (int(sky.sum()), 3)), 0, 255)
+    return out
 
 
 def _camera_effects(rgb, s, rng):
