@@ -51,7 +51,8 @@ def train_command(args, cfg) -> int:
     check_mirror(args.mirror_consistency, args.batch)
     check_ema(args.ema)
     check_average_init(args.average_init, args.init)
-    check_distill(args.distill, args.init, not args.stream, args.teacher)
+    check_distill(args.distill, args.init, not args.stream, args.teacher,
+                  crop_size(args.crop, INPUT_SIZE[::-1]))  # the frames' size, before rendering
     check_full_after(args.full_after, args.crop)
     for weights in export_weights(args):
         if not Path(weights).is_file():
@@ -816,10 +817,11 @@ def check_full_after(frac: float, crop: str) -> None:
 
 
 def check_distill(weight: float, init: str | None, frames_at_start: bool = True,
-                  teacher: str | None = None) -> None:
+                  teacher: str | None = None, crop_hw: tuple[int, int] = CROP_HW) -> None:
     """--distill needs a teacher (--teacher, an exported model, or else --init), a weight >=
-    0 (0: off) and every frame at the start, not streamed (the teacher's outputs are computed
-    once per frame, then cropped with it); --teacher needs --distill."""
+    0 (0: off), every frame at the start, not streamed (the teacher's outputs are computed
+    once per frame, then cropped with it), and crops (H, W) `crop_hw` of even sides (the
+    teacher's logits are at 1/2 resolution); --teacher needs --distill."""
     if weight < 0:
         raise ConfigError(f"--distill {weight:g}: the weight must be >= 0 (0: off)")
     if teacher is not None:
@@ -832,6 +834,16 @@ def check_distill(weight: float, init: str | None, frames_at_start: bool = True,
     if weight and not frames_at_start:
         raise ConfigError("--distill computes the teacher's outputs once per frame before "
                           "training: it cannot take --stream's frames")
+    if weight:
+        check_even_crop(crop_hw)
+
+
+def check_even_crop(crop_hw) -> None:
+    """Crops (H, W) that a teacher's 1/2-resolution logits can be cropped with."""
+    h, w = crop_hw
+    if h % 2 or w % 2:
+        raise ConfigError(f"crops of {h}x{w}: a teacher's 1/2-resolution logits need an "
+                          f"even crop height and width")
 
 
 def check_export_file(flag: str, path) -> None:
@@ -1136,9 +1148,7 @@ def _crop_batch(x, y, rng, crop_hw=CROP_HW, half=None):
     top = int(rng.integers(lo, span + 1))
     left = int(rng.integers(0, x.shape[3] - w + 1))
     if half is not None:
-        if h % 2 or w % 2:
-            raise ConfigError(f"crops of {h}x{w}: a teacher's 1/2-resolution logits need an "
-                              f"even crop height and width")
+        check_even_crop(crop_hw)
         top, left = top - top % 2, left - left % 2
         half = half[:, :, top // 2:(top + h) // 2, left // 2:(left + w) // 2]
     return x[:, :, top:top + h, left:left + w], y[:, top:top + h, left:left + w], top, half

@@ -428,6 +428,24 @@ def test_distillation_needs_a_teacher_and_frames_at_the_start(tmp_path, capsys):
     assert not any(out.iterdir())  # nothing rendered, nothing written
 
 
+def test_a_distilled_run_refuses_odd_crops_before_rendering(tmp_path, capsys, monkeypatch):
+    """The teacher's logits are at 1/2 resolution, so its crops need even sides; a run is told
+    so before it renders a frame or computes a teacher's logits."""
+    from services.cli import main
+    from services.segtrain import data as seg_data
+
+    def no_rendering(**_):
+        raise AssertionError("rendered frames before refusing the crop")
+
+    monkeypatch.setattr(seg_data, "training_set", no_rendering)
+    out = tmp_path / "out"
+    for crop, message in (("385x224", "crops of 224x385: a teacher's 1/2-resolution logits"),
+                          ("700x100", "--crop 700x100: outside the 640x360 frames")):
+        assert main(["train-seg", "--out", str(out), "--distill", "1", "--crop", crop,
+                     "--teacher", str(DEFAULT_MODEL), "--frames", "8", "--steps", "1"]) == 1
+        assert message in capsys.readouterr().err
+
+
 def test_a_bf16_run_trains_and_says_so(tmp_path):
     from services.cli import main
 
