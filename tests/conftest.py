@@ -42,6 +42,14 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.fixture(scope="session")
+def frame_cache(tmp_path_factory) -> list[str]:
+    """train-seg's options to cache rendered frames in one folder for the whole test run:
+    tests that train on the same towns render them once, and the user's own cache in the temp
+    dir is neither read nor written."""
+    return ["--cache-dir", str(tmp_path_factory.mktemp("roadmap-segtrain"))]
+
+
 @pytest.fixture
 def router():
     """A real Zenoh router in its own process on a free loopback port; yields its endpoint."""

@@ -143,6 +143,7 @@ def prune_command(args, out: Path, input_size) -> int:
         _load_init,
         check_export_file,
         class_weights,
+        frame_cache,
         save_weights,
     )
 
@@ -164,7 +165,7 @@ def prune_command(args, out: Path, input_size) -> int:
     model.eval()
     frames, labels = seg_data.training_set(
         seed=args.seed, input_size=input_size, budget_s=NO_RENDER_BUDGET_S,
-        max_frames=args.frames, workers=args.workers, cache=not args.no_cache,
+        max_frames=args.frames, workers=args.workers, **frame_cache(args),
         turn_prob=args.turn_prob, synth_share=args.synth_share,
         junctions=args.soup[0] if args.soup else "light")
     pick = np.random.default_rng(0).choice(len(frames), min(PRUNE_FRAMES, len(frames)),

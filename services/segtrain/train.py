@@ -54,6 +54,8 @@ def train_command(args, cfg) -> int:
     check_distill(args.distill, args.init, not args.stream, args.teacher,
                   crop_size(args.crop, INPUT_SIZE[::-1]))  # the frames' size, before rendering
     check_full_after(args.full_after, args.crop)
+    if args.no_cache and args.cache_dir:
+        raise ConfigError("--cache-dir with --no-cache: leave one out")
     for weights in export_weights(args):
         if not Path(weights).is_file():
             raise ConfigError(f"--export-only {weights}: no such file (a run's roadseg.pt "
@@ -93,7 +95,7 @@ def train_command(args, cfg) -> int:
     render_budget_s = _render_budget_s(args)
     frames, labels = seg_data.training_set(seed=args.seed, input_size=INPUT_SIZE,
                                            budget_s=render_budget_s, max_frames=args.frames,
-                                           workers=args.workers, cache=not args.no_cache,
+                                           workers=args.workers, **frame_cache(args),
                                            turn_prob=args.turn_prob,
                                            synth_share=args.synth_share,
                                            junctions=export_junctions(args))
@@ -119,6 +121,12 @@ def train_command(args, cfg) -> int:
     del frames, labels  # before the border step renders its own
     result["render_s"] = round(render_s, 1)
     return _finish(args, out, result, t_start)
+
+
+def frame_cache(args) -> dict:
+    """training_set's cache options as --no-cache and --cache-dir give them."""
+    return {"cache": not args.no_cache,
+            "cache_dir": Path(args.cache_dir) if args.cache_dir else None}
 
 
 def export_weights(args) -> list[str]:
@@ -209,12 +217,15 @@ def _train_soup(args, out: Path, t_start: float) -> int:
     doses, k = args.soup, len(args.soup)
     render_budget_s = _render_budget_s(args)
     train_s = max(float(args.minutes) * 60.0 - render_budget_s - 60.0, 60.0 * k) / k
+    # each run's share of the render budget; a run that renders every frame (--steps) gives
+    # each of its runs no budget either, so they are a lone run's frames (and cache) of the dose
+    run_budget_s = render_budget_s if render_budget_s >= NO_RENDER_BUDGET_S else render_budget_s / k
     states, held, runs, render_s = [], [], [], 0.0
     for i, dose in enumerate(doses):
         t0 = time.perf_counter()
         frames, labels = seg_data.training_set(
-            seed=args.seed, input_size=INPUT_SIZE, budget_s=render_budget_s / k,
-            max_frames=args.frames // k, workers=args.workers, cache=not args.no_cache,
+            seed=args.seed, input_size=INPUT_SIZE, budget_s=run_budget_s,
+            max_frames=args.frames // k, workers=args.workers, **frame_cache(args),
             turn_prob=args.turn_prob, synth_share=args.synth_share, junctions=dose)
         render_s += time.perf_counter() - t0
         logger.info("soup run %d of %d: junction lines %s, %d frames", i + 1, k, dose,
@@ -345,7 +356,7 @@ def fit_border_step(model_path, *, seed: int, frames: int, args, budget_s: float
     t0 = time.perf_counter()
     images, labels = seg_data.training_set(seed=seed, input_size=INPUT_SIZE, budget_s=budget_s,
                                            max_frames=frames, workers=args.workers,
-                                           cache=not args.no_cache, turn_prob=args.turn_prob,
+                                           **frame_cache(args), turn_prob=args.turn_prob,
                                            synth_share=args.synth_share)
     render_s = time.perf_counter() - t0
     result = calibrate_border_net(model_path, images, labels, seed=seed)

@@ -67,7 +67,8 @@ def test_greedy_pruning_drops_dead_channels_first_and_keeps_the_width_asked():
         prune.greedy_quarter_pruning(dead, 21, change)
 
 
-def test_the_prune_command_writes_an_init_for_the_narrower_architecture(tmp_path, monkeypatch):
+def test_the_prune_command_writes_an_init_for_the_narrower_architecture(
+        tmp_path, monkeypatch, frame_cache):
     """On a few town frames: the packaged model pruned to p16 and widened computes the pruned
     network (its loss is the last drop's), and a fine-tune starts from it with --arch p16."""
     from services.cli import main
@@ -75,7 +76,7 @@ def test_the_prune_command_writes_an_init_for_the_narrower_architecture(tmp_path
     monkeypatch.setattr(prune, "PRUNE_FRAMES", 2)
     out = tmp_path / "pruned"
     assert main(["train-seg", "--prune", str(DEFAULT_MODEL), "--arch", "p16", "--out", str(out),
-                 "--seed", "5", "--frames", "8", "--workers", "1", "--no-cache"]) == 0
+                 "--seed", "5", "--frames", "8", "--workers", "1", *frame_cache]) == 0
     log = json.loads((out / "prune_log.json").read_text())
     assert log["widths"] == [16, 16, 48, 64] and log["loss_frames"] == 2
     assert len(log["encoder_kept"]) == len(log["decoder_kept"]) == 16
@@ -84,11 +85,11 @@ def test_the_prune_command_writes_an_init_for_the_narrower_architecture(tmp_path
     first = (out / "roadseg.pt").read_bytes()
     tuned = tmp_path / "tuned"
     assert main(["train-seg", "--out", str(tuned), "--seed", "6", "--frames", "8", "--steps",
-                 "2", "--batch", "2", "--workers", "1", "--no-cache", "--crop", "full",
+                 "2", "--batch", "2", "--workers", "1", *frame_cache, "--crop", "full",
                  "--init", str(out / "roadseg.pt"), "--arch", "p16", "--no-flip-average"]) == 0
     assert json.loads((tuned / "train_log.json").read_text())["arch"] == "p16"
     assert main(["train-seg", "--prune", str(DEFAULT_MODEL), "--arch", "p16", "--out", str(out),
-                 "--seed", "5", "--frames", "8", "--workers", "1", "--no-cache"]) == 0
+                 "--seed", "5", "--frames", "8", "--workers", "1", *frame_cache]) == 0
     assert (out / "roadseg.pt").read_bytes() == first  # the same file again
 
 

@@ -3,6 +3,7 @@ distillation from a teacher, the moving average of the weights, bfloat16 trainin
 then whole frames in one run (needs the optional torch extra: `.[train]`)."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -115,31 +116,33 @@ def test_mirror_consistency_needs_an_even_batch(tmp_path, capsys):
     assert not any(tmp_path.iterdir())  # nothing rendered, nothing written
 
 
-def test_a_run_by_steps_is_the_same_run_twice(tmp_path):
+def test_a_run_by_steps_is_the_same_run_twice(tmp_path, frame_cache):
     """--steps: every frame rendered, the schedule spread over steps, not the machine's
     seconds: the same command gives the same file (here 48 frames, 100 steps: past the
-    step-100 progress line)."""
+    step-100 progress line). The second run reads the first's frames from the cache: the
+    rendering's own determinism is test_training_data's."""
     from services.cli import main
 
     outs = []
     for name in ("a", "b"):
         out = tmp_path / name
         assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "48",
-                     "--steps", "100", "--batch", "1", "--workers", "1", "--no-cache"]) == 0
+                     "--steps", "100", "--batch", "1", "--workers", "1", *frame_cache]) == 0
         outs.append(out)
     log = json.loads((outs[0] / "train_log.json").read_text())
     assert log["steps"] == 100 and log["frames"] == 48
     assert "--steps 100" in log["command"] and "--minutes" not in log["command"]
     assert (outs[0] / "roadseg.onnx").read_bytes() == (outs[1] / "roadseg.onnx").read_bytes()
+    assert len(list(Path(frame_cache[1]).glob("towns-*-s5-640x360-n48-*.npz"))) == 1  # --cache-dir
 
 
-def test_a_soup_exports_the_average_of_its_runs(tmp_path):
+def test_a_soup_exports_the_average_of_its_runs(tmp_path, frame_cache):
     """--soup light,heavy: a run on each dose's towns, half the frames and steps each, and the
     export is their weights' mean (the head's bias aside: the offsets are calibrated on the
     average), as the two runs made alone give them."""
     from services.cli import main
 
-    common = ["--seed", "5", "--batch", "1", "--workers", "1", "--no-cache"]
+    common = ["--seed", "5", "--batch", "1", "--workers", "1", *frame_cache]
     for name, soup, frames, steps in (("soup", "light,heavy", "48", "8"),
                                       ("light", "light", "24", "4"),
                                       ("heavy", "heavy", "24", "4")):
@@ -158,7 +161,7 @@ def test_a_soup_exports_the_average_of_its_runs(tmp_path):
             torch.testing.assert_close(value, (light[name] + heavy[name]) / 2)
 
 
-def test_average_init_exports_the_fine_tune_blended_with_its_start(tmp_path):
+def test_average_init_exports_the_fine_tune_blended_with_its_start(tmp_path, frame_cache):
     """--average-init 0.25: the export is 0.75 x the trained weights + 0.25 x --init's (the
     head's bias aside: the offsets are calibrated on the blend); the trained ones are kept."""
     from services.cli import main
@@ -170,7 +173,7 @@ def test_average_init_exports_the_fine_tune_blended_with_its_start(tmp_path):
     init = str(DEFAULT_MODEL)
     out = tmp_path / "wise"
     assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "24", "--steps", "4",
-                 "--batch", "1", "--workers", "1", "--no-cache", "--init", init,
+                 "--batch", "1", "--workers", "1", *frame_cache, "--init", init,
                  "--average-init", "0.25"]) == 0
     log = json.loads((out / "train_log.json").read_text())
     assert log["average_init"] == 0.25 and "--average-init 0.25" in log["command"]
@@ -230,6 +233,8 @@ def test_bad_steps_and_export_only_are_refused_before_rendering(tmp_path, capsys
     assert main(["train-seg", "--out", str(out), "--export-only", str(weights),
                  "--stream"]) == 1
     assert "leave out --stream" in capsys.readouterr().err
+    assert main(["train-seg", "--out", str(out), "--no-cache", "--cache-dir", str(out)]) == 1
+    assert "--cache-dir with --no-cache: leave one out" in capsys.readouterr().err
     assert not any(out.iterdir())  # nothing rendered, nothing written
 
 
@@ -255,14 +260,15 @@ def test_weight_average_needs_an_update():
         WeightAverage(torch.nn.Linear(2, 1), 0.9).load_into(torch.nn.Linear(2, 1))
 
 
-def test_an_ema_run_exports_the_average_and_its_last_weights_export_as_a_plain_run(tmp_path):
+def test_an_ema_run_exports_the_average_and_its_last_weights_export_as_a_plain_run(
+        tmp_path, frame_cache):
     """--ema exports the average and keeps the last step's weights; --export-only of those
     gives the very file the same run without --ema writes (the average draws no random
     numbers, and the export is the run's own)."""
     from services.cli import main
 
     run = ["--seed", "5", "--frames", "16", "--steps", "20", "--batch", "1", "--workers", "1",
-           "--no-cache"]
+           *frame_cache]
     ema, plain, last = tmp_path / "ema", tmp_path / "plain", tmp_path / "last"
     assert main(["train-seg", "--out", str(ema), *run, "--ema", "0.9"]) == 0
     assert main(["train-seg", "--out", str(plain), *run]) == 0
@@ -277,14 +283,15 @@ def test_an_ema_run_exports_the_average_and_its_last_weights_export_as_a_plain_r
     assert exported["weights"].endswith("roadseg-last.pt") and exported["flip_average"]
 
 
-def test_an_export_of_several_runs_is_the_export_of_their_averaged_weights(tmp_path, capsys):
+def test_an_export_of_several_runs_is_the_export_of_their_averaged_weights(
+        tmp_path, capsys, frame_cache):
     """--export-only A,B: the runs' weights averaged name by name, then exported as one run's
     (byte for byte the export of that average saved by hand); --soup DOSE calibrates on that
     dose's held-out frames, as a --soup DOSE run does (its own export, byte for byte)."""
     from services.cli import main
     from services.segtrain.train import average_states
 
-    run = ["--frames", "16", "--steps", "20", "--batch", "1", "--workers", "1", "--no-cache",
+    run = ["--frames", "16", "--steps", "20", "--batch", "1", "--workers", "1", *frame_cache,
            "--soup", "heavy"]
     for name, seed in (("a", "5"), ("b", "6")):
         assert main(["train-seg", "--out", str(tmp_path / name), "--seed", seed, *run]) == 0
@@ -356,26 +363,26 @@ def test_teacher_logits_are_the_flip_average_at_half_resolution():
     torch.testing.assert_close(got.float(), want, atol=2e-2, rtol=1e-2)
 
 
-def test_a_distilled_run_trains_towards_its_init_and_says_so(tmp_path):
+def test_a_distilled_run_trains_towards_its_init_and_says_so(tmp_path, frame_cache):
     from services.cli import main
 
     out = tmp_path / "distil"
     assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "24", "--steps", "4",
-                 "--batch", "2", "--workers", "1", "--no-cache", "--init", str(DEFAULT_MODEL),
+                 "--batch", "2", "--workers", "1", *frame_cache, "--init", str(DEFAULT_MODEL),
                  "--crop", "full", "--distill", "1", "--no-flip-average"]) == 0
     log = json.loads((out / "train_log.json").read_text())
     assert log["distill"] == 1.0 and "--distill 1" in log["command"]
     assert log["steps"] == 4 and np.isfinite(log["final_loss"])
 
 
-def test_a_run_from_scratch_on_crops_distils_an_exported_teacher(tmp_path):
+def test_a_run_from_scratch_on_crops_distils_an_exported_teacher(tmp_path, frame_cache):
     """--teacher without --init, on random crops (the default): the teacher's logits are
     computed once per frame and cropped with each batch."""
     from services.cli import main
 
     out = tmp_path / "distil-crops"
     assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "24", "--steps", "4",
-                 "--batch", "2", "--workers", "1", "--no-cache", "--arch", "p16",
+                 "--batch", "2", "--workers", "1", *frame_cache, "--arch", "p16",
                  "--distill", "1", "--teacher", str(DEFAULT_MODEL), "--no-flip-average"]) == 0
     log = json.loads((out / "train_log.json").read_text())
     assert log["teacher"] == str(DEFAULT_MODEL) and log["init"] is None
@@ -446,12 +453,12 @@ def test_a_distilled_run_refuses_odd_crops_before_rendering(tmp_path, capsys, mo
         assert message in capsys.readouterr().err
 
 
-def test_a_bf16_run_trains_and_says_so(tmp_path):
+def test_a_bf16_run_trains_and_says_so(tmp_path, frame_cache):
     from services.cli import main
 
     out = tmp_path / "bf16"
     assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "24", "--steps", "4",
-                 "--batch", "2", "--workers", "1", "--no-cache", "--bf16",
+                 "--batch", "2", "--workers", "1", *frame_cache, "--bf16",
                  "--no-flip-average"]) == 0
     log = json.loads((out / "train_log.json").read_text())
     assert log["bf16"] is True and "--bf16" in log["command"]
@@ -460,7 +467,7 @@ def test_a_bf16_run_trains_and_says_so(tmp_path):
     assert (out / "roadseg.onnx").stat().st_size > 10_000  # exported in float32
 
 
-def test_full_after_trains_crops_then_whole_frames_and_says_so(tmp_path, monkeypatch):
+def test_full_after_trains_crops_then_whole_frames_and_says_so(tmp_path, monkeypatch, frame_cache):
     """--full-after 0.5: the first half of the steps on --crop's windows, the rest on whole
     frames (one run from scratch ending as the fine-tunes train), in the log and the card."""
     from services.cli import main
@@ -476,7 +483,7 @@ def test_full_after_trains_crops_then_whole_frames_and_says_so(tmp_path, monkeyp
     monkeypatch.setattr(train, "_crop_batch", recording)
     out = tmp_path / "full-after"
     assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "24", "--steps", "4",
-                 "--batch", "2", "--workers", "1", "--no-cache", "--full-after", "0.5",
+                 "--batch", "2", "--workers", "1", *frame_cache, "--full-after", "0.5",
                  "--no-flip-average"]) == 0
     assert windows == [(224, 384)] * 2 + [(360, 640)] * 2
     log = json.loads((out / "train_log.json").read_text())
