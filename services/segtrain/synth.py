@@ -50,21 +50,21 @@ class WorldRaster:
 
     def sample(self, xy_world):
         """World points (N, 2) -> (labels, fine, coarse, wear) at the nearest cell; 0 outside."""
-        c = np.floor((xy_world[:, 0] - self.x0) / CELL_M).astype(np.int64)
-        r = np.floor((xy_world[:, 1] - self.y0) / CELL_M).astype(np.int64)
-        h, w = self.labels.shape
-        ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-        lab = np.where(ok, self.labels[np.where(ok, r, 0), np.where(ok, c, 0)], 0)
+        lab, r, c = self._cells(xy_world)
         tr, tc = r % TEXTURE, c % TEXTURE
         return lab, self.fine[tr, tc], self.coarse[tr, tc], self.wear[tr, tc]
 
     def labels_at(self, xy_world):
         """World points (N, 2) -> the label of the nearest cell; 0 outside."""
+        return self._cells(xy_world)[0]
+
+    def _cells(self, xy_world):
+        """World points (N, 2) -> (label of the nearest cell, 0 outside; its row; its column)."""
         c = np.floor((xy_world[:, 0] - self.x0) / CELL_M).astype(np.int64)
         r = np.floor((xy_world[:, 1] - self.y0) / CELL_M).astype(np.int64)
         h, w = self.labels.shape
         ok = (r >= 0) & (r < h) & (c >= 0) & (c < w)
-        return np.where(ok, self.labels[np.where(ok, r, 0), np.where(ok, c, 0)], 0)
+        return np.where(ok, self.labels[np.where(ok, r, 0), np.where(ok, c, 0)], 0), r, c
 
 
 def _noise(shape, rng, scale):
