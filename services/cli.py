@@ -136,7 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="do not read or write the rendered frames' cache (a temp-dir .npz)")
     p.add_argument("--cache-dir", default=None, metavar="DIR",
                    help="where the rendered frames are cached (default: roadmap-segtrain in the "
-                        "temp dir; a heavy set of 4800 frames takes about 3.3 GB)")
+                        "temp dir; 4800 frames take 4.4 GB)")
     p.add_argument("--device", default="cpu", help="torch device: cpu (2 threads) or cuda")
     p.add_argument("--batch", type=int, default=8, help="crops per training step")
     p.add_argument("--init", default=None,
