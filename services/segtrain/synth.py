@@ -132,10 +132,10 @@ class GroundMap:
     def __init__(self, camera: CameraModel, supersample: int = SUPER):
         self.camera, self.ss = camera, supersample
         w, h, k = camera.width, camera.height, supersample
-        self.uv, self.ground_v, self.hit, self.dist = _ground_at(camera, w, h, k)
+        self.uv, ground_v, self.hit, dist = _ground_at(camera, w, h, k)
         # the sub-pixels that see the ground: the only ones whose world cells are sampled
         self.on = np.flatnonzero(self.hit)
-        self.ground_on, self.dist_on = self.ground_v[self.on], self.dist[self.on]
+        self.ground_on, self.dist_on = ground_v[self.on], dist[self.on]
         # Labels are the class at each pixel's centre, as the simulator's renderer labels its
         # frames (services/sim/render.py) and as the benchmark scores them. (Until 2026-11-26
         # they were the majority of the 2x2 sub-samples with ties to the lower class: road over
@@ -144,6 +144,8 @@ class GroundMap:
             _, centre_v, centre_hit, _ = _ground_at(camera, w, h, 1)
             self.centre_on = np.flatnonzero(centre_hit)
             self.centre_ground_on = centre_v[self.centre_on]
+        else:
+            self.centre_on, self.centre_ground_on = self.on, self.ground_on
 
 
 def _ground_at(camera: CameraModel, w: int, h: int, k: int):
@@ -164,22 +166,19 @@ def render(raster: WorldRaster, ground: GroundMap, pose, rng, curb_label=None):
     With `curb_label` (an auxiliary training class), curb face and top cells get that label
     (else 0, none, like sidewalks). Only the pixels that see the ground sample the world."""
     w, h = ground.camera.width, ground.camera.height
-    R = rot_z(pose[2])[:2, :2]
-    lab, fine, coarse, wear = raster.sample(ground.ground_on @ R.T + [pose[0], pose[1]])
+    R, at = rot_z(pose[2])[:2, :2], [pose[0], pose[1]]
+    lab, fine, coarse, wear = raster.sample(ground.ground_on @ R.T + at)
     style = _style(rng)
     rgb = _shade(lab, fine, coarse, wear, ground, h, style, rng)
     k = ground.ss
     rgb = rgb.reshape(h * k, w * k, 3)
-    if k > 1:
+    if k > 1:  # the colours' sub-pixels are not the pixel centres the labels are taken at
         rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-        lab = np.zeros(w * h, raster.labels.dtype)
-        lab[ground.centre_on] = raster.labels_at(ground.centre_ground_on @ R.T
-                                                 + [pose[0], pose[1]])
-    else:
-        lab = np.zeros(w * h, raster.labels.dtype)
-        lab[ground.on] = raster.labels_at(ground.ground_on @ R.T + [pose[0], pose[1]])
+        lab = raster.labels_at(ground.centre_ground_on @ R.T + at)
+    centre = np.zeros(w * h, raster.labels.dtype)
+    centre[ground.centre_on] = lab
     curb = 0 if curb_label is None or style["curb"] is None else curb_label  # else: verge
-    labels = np.where(lab == WALK, 0, np.where(lab > WALK, curb, lab))
+    labels = np.where(centre == WALK, 0, np.where(centre > WALK, curb, centre))
     return _camera_effects(rgb, style, rng), labels.reshape(h, w).astype(np.uint8)
 
 

@@ -541,7 +541,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     start = ({k: v.detach().clone() for k, v in model.state_dict().items()}
              if average_init else None)
     whole = tuple(crop_hw) == tuple(frames.shape[1:3])
-    check_distill(distill, init, more is None, teacher)
+    check_distill(distill, init, more is None, teacher, crop_hw)
     check_full_after(full_after, "full" if whole else "crops")
     model = model.to(dev)
     targets = None
