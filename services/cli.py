@@ -231,8 +231,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bf16", action="store_true",
                    help="run the training forward pass under bfloat16 autocast (weights, "
                         "optimizer and loss stay float32): 0.69-0.75x float32's time a step on "
-                        "a 2-core EPYC with AVX-512 BF16, bench/bench_train_step.py (default "
-                        "off: float32)")
+                        "a 2-core EPYC with AVX-512 BF16, bench/bench_train_step.py, but 1.4-2.5x "
+                        "on a CPU without native bfloat16 (AVX2 only: a warning says so; "
+                        "default off: float32)")
     p.add_argument("--stream-junctions", default=None, type=lambda v: v.split(","),
                    metavar="D1,D2",
                    help="with --stream: the towns' junction-line doses (light, heavy), chunk k "

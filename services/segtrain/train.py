@@ -54,6 +54,9 @@ def train_command(args, cfg) -> int:
     check_distill(args.distill, args.init, not args.stream, args.teacher,
                   crop_size(args.crop, INPUT_SIZE[::-1]))  # the frames' size, before rendering
     check_full_after(args.full_after, args.crop)
+    warning = bf16_warning(args.bf16, args.device)
+    if warning:
+        logger.warning(warning)
     if args.no_cache and args.cache_dir:
         raise ConfigError("--cache-dir with --no-cache: leave one out")
     for weights in export_weights(args):
@@ -847,6 +850,33 @@ def check_distill(weight: float, init: str | None, frames_at_start: bool = True,
                           "training: it cannot take --stream's frames")
     if weight:
         check_even_crop(crop_hw)
+
+
+def bf16_warning(bf16: bool, device: str, native: bool | None = None) -> str | None:
+    """What to tell a `--bf16` run on a CPU without native bfloat16 arithmetic (`native`:
+    whether it has AVX-512 BF16 or AMX; None asks torch), else None. There torch emulates
+    bfloat16 arithmetic with conversions around every operation: on a 2-core AVX2 EPYC
+    (bench/bench_train_step.py, 2026-11-27) a step of 8 384x224 crops from scratch took
+    2.2-2.55x float32's time (1.10 against 0.43 s) and a whole-frame fine-tune step 1.4-1.55x
+    (2.59 against 1.68 s), where an AVX-512 BF16 EPYC gave 0.69-0.75x. The run goes on as
+    asked (a bf16 run's weights differ from a float32 run's), slower."""
+    if not bf16 or not str(device).startswith("cpu"):
+        return None
+    if native is None:
+        native = cpu_has_native_bf16()
+    if native:
+        return None
+    return ("--bf16 on a CPU without native bfloat16 (no AVX-512 BF16 or AMX): torch emulates "
+            "it, and a training step takes 1.4-2.5x float32's time here; leave --bf16 out "
+            "for speed (the weights then differ from a bf16 run's)")
+
+
+def cpu_has_native_bf16() -> bool:
+    """Whether torch's CPU kernels can run bfloat16 natively here (AVX-512 BF16 or AMX)."""
+    import torch
+
+    probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")  # torch >= 2.1
+    return any(getattr(torch.cpu, name, lambda: False)() for name in probes)
 
 
 def check_even_crop(crop_hw) -> None:

@@ -467,6 +467,18 @@ def test_a_bf16_run_trains_and_says_so(tmp_path, frame_cache):
     assert (out / "roadseg.onnx").stat().st_size > 10_000  # exported in float32
 
 
+def test_bf16_on_a_cpu_without_native_bfloat16_warns_that_it_is_slower():
+    from services.segtrain.train import bf16_warning, cpu_has_native_bf16
+
+    warning = bf16_warning(True, "cpu", native=False)
+    assert "--bf16" in warning and "float32's time" in warning
+    assert bf16_warning(True, "cpu", native=True) is None
+    assert bf16_warning(True, "cuda", native=False) is None  # GPUs have bfloat16 units
+    assert bf16_warning(False, "cpu", native=False) is None
+    # this machine's own answer, as the command asks it
+    assert (bf16_warning(True, "cpu") is None) == cpu_has_native_bf16()
+
+
 def test_full_after_trains_crops_then_whole_frames_and_says_so(tmp_path, monkeypatch, frame_cache):
     """--full-after 0.5: the first half of the steps on --crop's windows, the rest on whole
     frames (one run from scratch ending as the fine-tunes train), in the log and the card."""
