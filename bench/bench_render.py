@@ -1,5 +1,6 @@
 """Benchmark of the simulator's camera renderer: ms per 640 x 360 frame (RGB + labels, and labels
-only) along a town drive, plus label-only simulation speed. Writes JSON. Wall-clock and CPU-time
+only) along a town drive and (RGB + labels) at random poses, as training frames are rendered,
+plus label-only simulation speed. Writes JSON. Wall-clock and CPU-time
 percentiles are both reported (on a shared, loaded machine CPU time is the steadier one).
 
     python bench/bench_render.py [--out bench_render.json] [--frames 200] [--world town]
@@ -19,6 +20,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from common.camera import camera_from_config  # noqa: E402
+from common.classes import Cls  # noqa: E402
 from common.config import CameraConfig  # noqa: E402
 from services.sim import motion, sensors  # noqa: E402
 from services.sim.render import FrameRenderer  # noqa: E402
@@ -63,6 +65,20 @@ def run(quick: bool = False, frames: int | None = None, world_spec: str = "town"
             rgb_cpu.append(1000 * (c1 - c0))
             lab_cpu.append(1000 * (c2 - c1))
 
+    # training frames (services/segtrain): each at a random pose, so each in a label window
+    # of its own, whose surface masks the renderer computes for the frame's box of it (jumps)
+    roads = [m.polygon_xy_m for m in world.markings if m.cls == Cls.ROAD]
+    jumper = FrameRenderer(world, camera, seed=0, jumps=True)
+    jump_ms, jump_cpu = [], []
+    for i in range(max(frames // 5, 10)):
+        poly = roads[int(rng.integers(len(roads)))]
+        x, y = poly[int(rng.integers(len(poly)))]
+        pose = np.array([x, y, rng.uniform(-np.pi, np.pi)])
+        c0, t0 = time.process_time(), time.perf_counter()
+        jumper.render(pose, camera.T_vehicle_camera, float(i))
+        jump_ms.append(1000 * (time.perf_counter() - t0))
+        jump_cpu.append(1000 * (time.process_time() - c0))
+
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         path = simulate_drives(world, tmp, images=False, max_km=sim_km)[0]
@@ -77,9 +93,11 @@ def run(quick: bool = False, frames: int | None = None, world_spec: str = "town"
         "load_avg_1min": round(os.getloadavg()[0], 2),
         "render_rgb_and_labels": _stats(rgb_ms),
         "render_labels_only": _stats(lab_ms),
+        "render_random_poses": _stats(jump_ms),
         "cpu_time": {
             "render_rgb_and_labels": _stats(rgb_cpu),
             "render_labels_only": _stats(lab_cpu),
+            "render_random_poses": _stats(jump_cpu),
         },
         "label_only_sim": {
             "km": sim_km,

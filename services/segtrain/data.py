@@ -330,7 +330,7 @@ def _sim_frames(world, rng, turn_prob: float = TURN_PROB):
 
     for _ in range(4):
         camera = random_camera(rng)
-        renderer = FrameRenderer(world, camera, seed=int(rng.integers(2**31)))
+        renderer = FrameRenderer(world, camera, seed=int(rng.integers(2**31)), jumps=True)
         renderer.look.curb = rng.random() < 0.85  # raised curbs: light edges that are not paint
         renderer.look.curb_face = curb_face_gain(rng)
         for _ in range(CHUNK_FRAMES // 4):

@@ -42,7 +42,7 @@ def render_heldout(spec: str, *, frames: int, seed: int, rare_prob: float = 0.3,
         facing_poses = FacingPoses(world, facing)
     pairs = []
     for start in range(0, frames, 10):  # a new look (renderer seed) every 10 frames
-        renderer = FrameRenderer(world, camera, seed=int(rng.integers(2**31)))
+        renderer = FrameRenderer(world, camera, seed=int(rng.integers(2**31)), jumps=True)
         for _ in range(min(10, frames - start)):
             shake = np.radians(rng.normal(0.0, 0.3, 2))
             T = camera.perturbed(d_pitch_rad=shake[0], d_roll_rad=shake[1]).T_vehicle_camera

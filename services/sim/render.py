@@ -244,7 +244,12 @@ class Appearance:
 class FrameRenderer:
     """RGB and label images of a drive: geometry from LabelRenderer, looks from Appearance."""
 
-    def __init__(self, world: World, camera: CameraModel, seed: int = 0):
+    def __init__(self, world: World, camera: CameraModel, seed: int = 0, jumps: bool = False):
+        """`jumps`: the frames' poses are unrelated (training frames at random poses), so
+        each frame computes the surface masks of only its own box of the label window (a
+        third to a half of the time a frame takes at a random pose); else (a drive) those of
+        the whole window, kept while the frames stay in it. The frames are the same bytes."""
+        self.jumps = jumps
         self.rng = np.random.default_rng(seed)
         self.look = Appearance(self.rng)
         self.labeler = LabelRenderer(world, camera)
@@ -253,7 +258,7 @@ class FrameRenderer:
         yy, xx = np.mgrid[0 : self.h, 0 : self.w].astype(np.float32)
         r2 = ((xx - self.w / 2) / self.w) ** 2 + ((yy - self.h / 2) / self.h) ** 2
         self.vignette = cv2.merge([(1.0 - 0.35 * r2).astype(np.float32)] * 3)
-        self._surface_cache = None
+        self._surface_cache = None  # (window, its masks): kept while frames stay in it
         gamma = self.rng.uniform(0.8, 1.25)
         self.tone = np.clip(255.0 * (np.arange(256) / 255.0) ** gamma, 0, 255).astype(np.uint8)
         self.noise = [
@@ -261,58 +266,104 @@ class FrameRenderer:
             for _ in range(4)
         ]
 
-    def _surface_window(self, window):
-        """(road, paint, curb, sidewalk) masks of the label window as one 4-channel uint8 image,
-        so that a single linear remap samples all four. Paint is softened to hide the cell
-        steps; curb and sidewalk are bands at a distance from the road (label: none)."""
-        if self._surface_cache is None or self._surface_cache[0] is not window:
-            road = (window >= Cls.ROAD).astype(np.uint8) * 255
-            paint = cv2.GaussianBlur((window >= Cls.LANE_LINE).astype(np.uint8) * 255, (0, 0), 0.6)
-            if self.look.curb:
-                curb = _ring(road, self.look.curb_w_m / self.labeler.cell_m)
-                walk_cells = (self.look.curb_w_m + self.look.sidewalk_m) / self.labeler.cell_m
-                walk = (_ring(road, walk_cells, coarse=4) if self.look.sidewalk_m
-                        else np.zeros_like(road))
-                walk = cv2.subtract(walk, curb)
-            else:
-                curb = walk = np.zeros_like(road)
-            self._surface_cache = (window, cv2.merge([road, paint, curb, walk]))
-        return self._surface_cache[1]
+    def _surface(self, window, mx, my, ground, camera_xy):
+        """(surface, x0, y0): the (road, paint, curb, sidewalk) masks (`_surface_masks`) of the
+        label window, or with `jumps` of the box of it from cell (x0, y0) on that this frame's
+        remaps read: the ground points (mx, my) and the points between them and the camera's
+        ground point (`camera_xy`, window coordinates: `_raised`), which lie in the same box.
+        A frame at a random pose sees about a quarter of its window. The box's masks are the
+        whole window's where the frame reads them: the box has a margin wider than the blur
+        and the rings reach, and starts on the rings' 4-cell grid."""
+        if not self.jumps:
+            if self._surface_cache is None or self._surface_cache[0] is not window:
+                self._surface_cache = (window, self._surface_masks(window))
+            return self._surface_cache[1], 0, 0
+        h, w = window.shape
+        xs, ys = mx[ground], my[ground]
+        if xs.size == 0:
+            return self._surface_masks(window[:0, :0]), 0, 0  # every read is off the window
+        margin = self._surface_margin_cells()
+        x0 = max(int(np.floor(min(xs.min(), camera_xy[0]))) - margin, 0) // 4 * 4
+        y0 = max(int(np.floor(min(ys.min(), camera_xy[1]))) - margin, 0) // 4 * 4
+        x1 = min(-(-(int(np.floor(max(xs.max(), camera_xy[0]))) + 2 + margin) // 4) * 4, w)
+        y1 = min(-(-(int(np.floor(max(ys.max(), camera_xy[1]))) + 2 + margin) // 4) * 4, h)
+        if x0 >= x1 or y0 >= y1:
+            return self._surface_masks(window[:0, :0]), 0, 0
+        return self._surface_masks(window[y0:y1, x0:x1]), x0, y0
 
-    def _raised(self, pose, T_vehicle_camera, geo, window, mx, my):
+    def _surface_margin_cells(self) -> int:
+        """Cells around a box of the window whose masks a computation on the box alone gets
+        wrong: the paint blur's 2 and the rings' reach (the sidewalk's on a 4-cell grid)."""
+        reach = 2
+        if self.look.curb:
+            cell = self.labeler.cell_m
+            reach = max(reach, int(round(self.look.curb_w_m / cell)))
+            if self.look.sidewalk_m:
+                walk_cells = (self.look.curb_w_m + self.look.sidewalk_m) / cell
+                reach = max(reach, 4 * (max(int(round(walk_cells / 4)), 1) + 1))
+        return reach + 8
+
+    def _surface_masks(self, window):
+        """(road, paint, curb, sidewalk) masks of a label window (or a box of it whose origin
+        is on the 4-cell grid) as one 4-channel uint8 image, so that a single linear remap
+        samples all four. Paint is softened to hide the cell steps; curb and sidewalk are
+        bands at a distance from the road (label: none)."""
+        road = (window >= Cls.ROAD).astype(np.uint8) * 255
+        if road.size == 0:
+            return np.zeros((1, 1, 4), np.uint8)
+        paint = cv2.GaussianBlur((window >= Cls.LANE_LINE).astype(np.uint8) * 255, (0, 0), 0.6)
+        if self.look.curb:
+            curb = _ring(road, self.look.curb_w_m / self.labeler.cell_m)
+            walk_cells = (self.look.curb_w_m + self.look.sidewalk_m) / self.labeler.cell_m
+            walk = (_ring(road, walk_cells, coarse=4) if self.look.sidewalk_m
+                    else np.zeros_like(road))
+            walk = cv2.subtract(walk, curb)
+        else:
+            curb = walk = np.zeros_like(road)
+        return cv2.merge([road, paint, curb, walk])
+
+    def _camera_cell(self, pose, T_vehicle_camera) -> tuple:
+        """The camera's ground point in the label window's coordinates, as mx, my (float32)."""
+        _, x0, y0 = self.labeler.tiles.window(pose[0], pose[1])  # cached: the same window
+        cam_x, cam_y = _camera_ground_point(pose, T_vehicle_camera)
+        cell = self.labeler.cell_m
+        return np.float32((cam_x - x0) / cell - 0.5), np.float32((cam_y - y0) / cell - 0.5)
+
+    def _raised(self, T_vehicle_camera, geo, surface, camera_xy, mx, my):
         """Where the camera sees a raised curb (looks with curbs): everything off the road
         stands curb_h_m high. A ray meets that height at t = c + (g - c) (H - h) / H (c the
-        camera's ground point, g the ray's ground point, H the camera height): off the road at
-        t, the ray ends on the curb top / sidewalk / verge there; on the road at t but off the
-        road at g, it ends on the curb's vertical face. Returns (surface sampled at t, top mask,
-        face mask), or None without curbs."""
+        camera's ground point `camera_xy`, g the ray's ground point, H the camera height): off
+        the road at t, the ray ends on the curb top / sidewalk / verge there; on the road at t
+        but off the road at g, it ends on the curb's vertical face. Returns (surface sampled at
+        t, top mask, face mask), or None without curbs."""
         if not self.look.curb:
             return None
         height = float(T_vehicle_camera[2, 3])
         k = np.float32(max(height - self.look.curb_h_m, 0.05) / height)
-        _, x0, y0 = self.labeler.tiles.window(pose[0], pose[1])  # cached: the same window
-        cam_x, cam_y = _camera_ground_point(pose, T_vehicle_camera)
-        cell = self.labeler.cell_m
-        cx = np.float32((cam_x - x0) / cell - 0.5)  # window coordinates, as mx, my
-        cy = np.float32((cam_y - y0) / cell - 0.5)
+        cx, cy = camera_xy
         tx = np.where(geo.ground, cx + (mx - cx) * k, -10.0).astype(np.float32)
         ty = np.where(geo.ground, cy + (my - cy) * k, -10.0).astype(np.float32)
-        surf_t = cv2.remap(self._surface_window(window), tx, ty, cv2.INTER_LINEAR)
+        surf_t = _remap_surface(surface, tx, ty)
         road_t = surf_t[:, :, 0] >= 128
         top = geo.ground & ~road_t
         return surf_t, top, geo.ground & road_t
 
-    def _ground_labels(self, pose, T_vehicle_camera):
-        """(labels, geometry, (window, mx, my), raised) of the ground: the road hidden behind a
-        raised island gets label 0."""
+    def _ground_labels(self, pose, T_vehicle_camera, rgb: bool = True):
+        """(labels, geometry, (surface, mx, my), raised) of the ground: the road hidden behind
+        a raised island gets label 0. Without `rgb`, the surface masks are computed only for
+        raised curbs (else None)."""
         lab, geo, (window, mx, my) = self.labeler.labels(pose, T_vehicle_camera)
-        raised = self._raised(pose, T_vehicle_camera, geo, window, mx, my)
+        if not (rgb or self.look.curb):
+            return lab, geo, (None, mx, my), None
+        camera_xy = self._camera_cell(pose, T_vehicle_camera)
+        surface = self._surface(window, mx, my, geo.ground, camera_xy)
+        raised = self._raised(T_vehicle_camera, geo, surface, camera_xy, mx, my)
         if raised is not None:
             lab[raised[1]] = 0
-        return lab, geo, (window, mx, my), raised
+        return lab, geo, (surface, mx, my), raised
 
     def labels(self, pose, T_vehicle_camera, vehicles=()) -> np.ndarray:
-        lab, *_ = self._ground_labels(pose, T_vehicle_camera)
+        lab, *_ = self._ground_labels(pose, T_vehicle_camera, rgb=False)
         for hull, _, _ in self._vehicle_items(pose, T_vehicle_camera, vehicles):
             cv2.fillPoly(lab, [hull], 0)
         return lab
@@ -321,11 +372,11 @@ class FrameRenderer:
         """(rgb uint8 (H, W, 3), labels uint8 (H, W)) of one frame. With `curb_label` (training
         only: an auxiliary class beyond ours), the pixels of raised curbs (vertical face and
         top band) get that label instead of 0 (none)."""
-        lab, geo, (window, mx, my), raised = self._ground_labels(pose, T_vehicle_camera)
+        lab, geo, (surface, mx, my), raised = self._ground_labels(pose, T_vehicle_camera)
         if curb_label is not None and raised is not None:
             surf_t, top, on_face = raised
             lab[(on_face & (lab == 0)) | (top & (surf_t[:, :, 2] >= 128))] = curb_label
-        rgb = self._ground(geo, window, mx, my, t_s, raised)
+        rgb = self._ground(geo, surface, mx, my, t_s, raised)
         rgb = self._sky(rgb, geo, pose)
         rgb = self._vehicles(rgb, lab, pose, T_vehicle_camera, vehicles)
         return self._sensor(rgb), lab
@@ -340,11 +391,11 @@ class FrameRenderer:
         my -= np.floor(my / n) * n
         return cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
 
-    def _ground(self, geo, window, mx, my, t_s, raised=None):
+    def _ground(self, geo, surface, mx, my, t_s, raised=None):
         """Asphalt / roadside with texture, raised curbs and sidewalks, worn paint, shadows,
-        lighting and haze, as three (H, W) colour planes."""
+        lighting and haze, as three (H, W) colour planes (`surface`: _surface's)."""
         look = self.look
-        surf = cv2.remap(self._surface_window(window), mx, my, cv2.INTER_LINEAR)
+        surf = _remap_surface(surface, mx, my)
         road, paint, _, _ = (c.astype(np.float32) * np.float32(1 / 255) for c in cv2.split(surf))
         face = np.zeros_like(road)
         curb = walk = face
@@ -468,6 +519,16 @@ def motion_kernel(rng) -> np.ndarray:
     k = np.zeros((n, n), np.float32)
     k[n // 2, :] = 1.0 / n
     return k.T.copy() if rng.random() < 0.5 else k
+
+
+def _remap_surface(surface, mx, my) -> np.ndarray:
+    """FrameRenderer._surface's masks (surface, x0, y0) at window coordinates (mx, my),
+    linearly interpolated, 0 off the masks. Moving the maps to the box's origin is exact in
+    float32 (an integer off a coordinate below 2^13), so the samples are the whole window's."""
+    masks, x0, y0 = surface
+    if x0 or y0:
+        mx, my = mx - np.float32(x0), my - np.float32(y0)
+    return cv2.remap(masks, mx, my, cv2.INTER_LINEAR)
 
 
 def _ring(mask: np.ndarray, width_cells: float, coarse: int = 1) -> np.ndarray:

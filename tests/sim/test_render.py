@@ -156,6 +156,44 @@ def test_raised_island_hides_the_road_behind_it_and_shows_a_curb_face(camera):
     assert grey[v_face, u0 - 3:u0 + 4].mean() < 0.8 * grey[v_top, u0 - 3:u0 + 4].mean()
 
 
+def test_frames_at_unrelated_poses_compute_their_box_of_the_window_with_the_same_bytes(camera):
+    """A renderer for frames at unrelated poses (`jumps`: training frames) computes the
+    surface masks (road, paint, curb, sidewalk) of only the box of the label window that a
+    frame reads, not of the whole window as a drive's renderer does (a frame at a random pose
+    reads about a quarter of it). Inside the box's margin the masks are the whole window's,
+    and the frames are the same bytes: the margin covers the blur and the curb and sidewalk
+    rings (a narrower margin fails this test)."""
+    from services.sim.worlds import load_world
+
+    world = load_world("town", seed=2)
+    rng = np.random.default_rng(5)
+    roads = [m for m in world.markings if m.cls == Cls.ROAD]
+    curbs = 0
+    for i in range(4):
+        poly = roads[int(rng.integers(len(roads)))].polygon_xy_m
+        x, y = poly[int(rng.integers(len(poly)))]
+        pose = np.array([x, y, rng.uniform(-np.pi, np.pi)])
+        boxed = FrameRenderer(world, camera, seed=i, jumps=True)
+        whole = FrameRenderer(world, camera, seed=i)
+        for r in (boxed, whole):
+            r.look.curb, r.look.sidewalk_m, r.look.curb_w_m = True, 3.0, 0.2  # widest rings
+        T = camera.T_vehicle_camera
+        _, geo, (window, mx, my) = boxed.labeler.labels(pose, T)
+        masks, x0, y0 = boxed._surface(window, mx, my, geo.ground, boxed._camera_cell(pose, T))
+        h, w = masks.shape[:2]
+        assert h * w < 0.6 * window.size  # a box, not the window
+        m = boxed._surface_margin_cells()
+        rows = slice(m if y0 else 0, h - m if y0 + h < window.shape[0] else h)
+        cols = slice(m if x0 else 0, w - m if x0 + w < window.shape[1] else w)
+        truth = whole._surface(window, mx, my, geo.ground, None)[0][y0:y0 + h, x0:x0 + w]
+        assert np.array_equal(masks[rows, cols], truth[rows, cols])
+        a = boxed.render(pose, T, 1.0, curb_label=6)
+        b = whole.render(pose, T, 1.0, curb_label=6)
+        assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+        curbs += int((a[1] == 6).sum())
+    assert curbs > 1000  # curbs in view: the rings were read
+
+
 def test_motion_blur_keeps_the_image_where_its_labels_are():
     image = np.zeros((21, 21), np.float32)
     image[10, 10] = 1.0
