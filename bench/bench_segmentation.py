@@ -53,6 +53,7 @@ from common.camera import build_ipm_lookup, camera_from_config, sky_fraction  # 
 from common.classes import NAMES, Cls  # noqa: E402
 from common.config import CameraConfig, RoiConfig, SegmentationConfig, VehicleConfig  # noqa: E402
 from common.segmentation import DEFAULT_MODEL, get_segmenter  # noqa: E402
+from services.demo.bench import cpu_description  # noqa: E402
 from services.segtrain.evaluate import (  # noqa: E402
     CLASSES,
     IouAccumulator,
@@ -198,6 +199,7 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
         "flip_average": seg.flip_average,  # the network's logits of the image and its mirror
         "sky_margin_deg": sky_margin_deg, "sky_rows": seg.sky_rows,  # rows not segmented
         "python": platform.python_version(), "onnxruntime": onnxruntime.__version__,
+        **cpu_description(),  # the speed depends on the vector units as much as on the model
         "targets": TARGETS, "worlds": {},
     }
     timed = []  # route frames for the speed measurement

@@ -25,6 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from common.segmentation import DEFAULT_MODEL  # noqa: E402
+from services.demo.bench import cpu_description  # noqa: E402
 
 RUNS = {  # name -> (init, crop (H, W))
     "finetune_whole_frames": (str(DEFAULT_MODEL), (360, 640)),
@@ -63,6 +64,7 @@ def time_steps(frames, labels, *, init, crop_hw, bf16: bool, steps: int, batch: 
 def run_all(steps: int, batch: int) -> dict:
     frames, labels = _frames(48)
     report = {"python": platform.python_version(), "cpu_count": os.cpu_count(),
+              **cpu_description(),  # bfloat16 is native with avx512_bf16 or amx_tile only
               "batch": batch, "runs": {}}
     for name, (init, crop_hw) in RUNS.items():
         f32 = time_steps(frames, labels, init=init, crop_hw=crop_hw, bf16=False, steps=steps,

@@ -56,6 +56,17 @@ def test_bench_records_missing_and_failing_benchmarks(tmp_path):
     assert out["cores"] == os.cpu_count()
 
 
+def test_the_environment_names_the_cpu_and_the_vector_units_the_timings_depend_on():
+    cpuinfo = ("processor\t: 0\nmodel name\t: AMD EPYC 9B14\nflags\t\t: fpu sse2 avx2 fma "
+               "avx512f avx512_bf16 avx512_vnni\n\nprocessor\t: 1\nmodel name\t: AMD EPYC 9B14\n")
+    assert bench.cpu_description(cpuinfo) == {
+        "cpu": "AMD EPYC 9B14", "simd": ["avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16"]}
+    avx2 = bench.cpu_description("model name : AMD EPYC\nflags : sse2 avx2 fma\n")
+    assert avx2["simd"] == ["avx2", "fma"]
+    here = bench.environment()
+    assert set(here["simd"] or []) <= set(bench.SIMD_FLAGS) and "cpu" in here
+
+
 def test_a_flat_benchmark_result_becomes_a_stage_with_its_quality_figures():
     seg = {"model": "roadseg", "ms_p50": 12.5, "ms_p95": 16.0, "iou": {"lane_line": 0.72},
            "iou_ci90": {"lane_line": [0.71, 0.73]}, "speed": {"threads": 1},
