@@ -54,9 +54,6 @@ def train_command(args, cfg) -> int:
     check_distill(args.distill, args.init, not args.stream, args.teacher,
                   crop_size(args.crop, INPUT_SIZE[::-1]))  # the frames' size, before rendering
     check_full_after(args.full_after, args.crop)
-    warning = bf16_warning(args.bf16, args.device)
-    if warning:
-        logger.warning(warning)
     if args.no_cache and args.cache_dir:
         raise ConfigError("--cache-dir with --no-cache: leave one out")
     for weights in export_weights(args):
@@ -78,6 +75,9 @@ def train_command(args, cfg) -> int:
         from services.segtrain.prune import prune_command
 
         return prune_command(args, out, INPUT_SIZE)
+    warning = bf16_warning(args.bf16, args.device)  # a run that trains
+    if warning:
+        logger.warning(warning)
     if args.steps is not None and args.steps < 1:
         raise ConfigError(f"--steps {args.steps}: at least 1")
     check_soup(args)

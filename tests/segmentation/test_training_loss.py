@@ -453,8 +453,9 @@ def test_a_distilled_run_refuses_odd_crops_before_rendering(tmp_path, capsys, mo
         assert message in capsys.readouterr().err
 
 
-def test_a_bf16_run_trains_and_says_so(tmp_path, frame_cache):
+def test_a_bf16_run_trains_and_says_so(tmp_path, frame_cache, capsys):
     from services.cli import main
+    from services.segtrain.train import cpu_has_native_bf16
 
     out = tmp_path / "bf16"
     assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "24", "--steps", "4",
@@ -465,6 +466,9 @@ def test_a_bf16_run_trains_and_says_so(tmp_path, frame_cache):
     assert "(bfloat16 autocast)" in (out / "MODEL_CARD.md").read_text()
     assert log["steps"] == 4 and np.isfinite(log["final_loss"])
     assert (out / "roadseg.onnx").stat().st_size > 10_000  # exported in float32
+    # where torch emulates bfloat16 (no AVX-512 BF16 or AMX), the run says it is slower
+    err = capsys.readouterr().err
+    assert ("without native bfloat16" in err) == (not cpu_has_native_bf16())
 
 
 def test_bf16_on_a_cpu_without_native_bfloat16_warns_that_it_is_slower():
