@@ -73,12 +73,12 @@ def test_the_prune_command_writes_an_init_for_the_narrower_architecture(
     network (its loss is the last drop's), and a fine-tune starts from it with --arch p16."""
     from services.cli import main
 
-    monkeypatch.setattr(prune, "PRUNE_FRAMES", 2)
+    monkeypatch.setattr(prune, "PRUNE_FRAMES", 1)
     out = tmp_path / "pruned"
     assert main(["train-seg", "--prune", str(DEFAULT_MODEL), "--arch", "p16", "--out", str(out),
                  "--seed", "5", "--frames", "8", "--workers", "1", *frame_cache]) == 0
     log = json.loads((out / "prune_log.json").read_text())
-    assert log["widths"] == [16, 16, 48, 64] and log["loss_frames"] == 2
+    assert log["widths"] == [16, 16, 48, 64] and log["loss_frames"] == 1
     assert len(log["encoder_kept"]) == len(log["decoder_kept"]) == 16
     assert len(log["steps"]) == 8
     assert log["loss_after"] == pytest.approx(log["steps"][-1][2], abs=1e-4)
