@@ -278,29 +278,29 @@ class FrameRenderer:
             if self._surface_cache is None or self._surface_cache[0] is not window:
                 self._surface_cache = (window, self._surface_masks(window))
             return self._surface_cache[1], 0, 0
-        h, w = window.shape
-        xs, ys = mx[ground], my[ground]
-        if xs.size == 0:
-            return self._surface_masks(window[:0, :0]), 0, 0  # every read is off the window
-        margin = self._surface_margin_cells()
-        x0 = max(int(np.floor(min(xs.min(), camera_xy[0]))) - margin, 0) // 4 * 4
-        y0 = max(int(np.floor(min(ys.min(), camera_xy[1]))) - margin, 0) // 4 * 4
-        x1 = min(-(-(int(np.floor(max(xs.max(), camera_xy[0]))) + 2 + margin) // 4) * 4, w)
-        y1 = min(-(-(int(np.floor(max(ys.max(), camera_xy[1]))) + 2 + margin) // 4) * 4, h)
-        if x0 >= x1 or y0 >= y1:
-            return self._surface_masks(window[:0, :0]), 0, 0
+        box = _read_box(mx[ground], my[ground], camera_xy, self._surface_margin_cells(),
+                        window.shape)
+        if box is None:  # every read is off the window
+            return _NO_SURFACE, 0, 0
+        (x0, x1), (y0, y1) = box
         return self._surface_masks(window[y0:y1, x0:x1]), x0, y0
+
+    def _ring_cells(self) -> tuple:
+        """(curb, sidewalk) band widths in label cells (the sidewalk's from the road, through
+        the curb; None without a sidewalk)."""
+        cell = self.labeler.cell_m
+        walk = (self.look.curb_w_m + self.look.sidewalk_m) / cell if self.look.sidewalk_m else None
+        return self.look.curb_w_m / cell, walk
 
     def _surface_margin_cells(self) -> int:
         """Cells around a box of the window whose masks a computation on the box alone gets
-        wrong: the paint blur's 2 and the rings' reach (the sidewalk's on a 4-cell grid)."""
+        wrong: the paint blur's 2 and the curb and sidewalk rings' reach."""
         reach = 2
         if self.look.curb:
-            cell = self.labeler.cell_m
-            reach = max(reach, int(round(self.look.curb_w_m / cell)))
-            if self.look.sidewalk_m:
-                walk_cells = (self.look.curb_w_m + self.look.sidewalk_m) / cell
-                reach = max(reach, 4 * (max(int(round(walk_cells / 4)), 1) + 1))
+            curb_cells, walk_cells = self._ring_cells()
+            reach = max(reach, _ring_reach(curb_cells))
+            if walk_cells is not None:
+                reach = max(reach, _ring_reach(walk_cells, coarse=4))
         return reach + 8
 
     def _surface_masks(self, window):
@@ -309,13 +309,11 @@ class FrameRenderer:
         samples all four. Paint is softened to hide the cell steps; curb and sidewalk are
         bands at a distance from the road (label: none)."""
         road = (window >= Cls.ROAD).astype(np.uint8) * 255
-        if road.size == 0:
-            return np.zeros((1, 1, 4), np.uint8)
         paint = cv2.GaussianBlur((window >= Cls.LANE_LINE).astype(np.uint8) * 255, (0, 0), 0.6)
         if self.look.curb:
-            curb = _ring(road, self.look.curb_w_m / self.labeler.cell_m)
-            walk_cells = (self.look.curb_w_m + self.look.sidewalk_m) / self.labeler.cell_m
-            walk = (_ring(road, walk_cells, coarse=4) if self.look.sidewalk_m
+            curb_cells, walk_cells = self._ring_cells()
+            curb = _ring(road, curb_cells)
+            walk = (_ring(road, walk_cells, coarse=4) if walk_cells is not None
                     else np.zeros_like(road))
             walk = cv2.subtract(walk, curb)
         else:
@@ -531,13 +529,43 @@ def _remap_surface(surface, mx, my) -> np.ndarray:
     return cv2.remap(masks, mx, my, cv2.INTER_LINEAR)
 
 
+_NO_SURFACE = np.zeros((1, 1, 4), np.uint8)  # a frame that reads nothing of its window
+
+
+def _read_box(xs, ys, camera_xy, margin: int, shape) -> tuple | None:
+    """((x0, x1), (y0, y1)): the cells of a label window of `shape` that remaps at points
+    (xs, ys) and between them and `camera_xy` read, `margin` cells wider, on the 4-cell grid
+    of `_ring`'s coarse bands; None if that is no cell of the window."""
+    if xs.size == 0:
+        return None
+    spans = []
+    for v, c, size in ((xs, camera_xy[0], shape[1]), (ys, camera_xy[1], shape[0])):
+        lo = max(int(np.floor(min(v.min(), c))) - margin, 0) // 4 * 4
+        hi = min(-(-(int(np.floor(max(v.max(), c))) + 2 + margin) // 4) * 4, size)
+        if lo >= hi:
+            return None
+        spans.append((lo, hi))
+    return tuple(spans)
+
+
+def _ring_radius(width_cells: float, coarse: int = 1) -> int:
+    """The dilation radius of `_ring`'s band, in cells of its `coarse`-times smaller grid."""
+    return max(int(round(width_cells / coarse)), 1)
+
+
+def _ring_reach(width_cells: float, coarse: int = 1) -> int:
+    """How many cells of the mask away `_ring`'s band can reach: its radius, and on a coarse
+    grid the coarse cell around each cell too."""
+    return coarse * (_ring_radius(width_cells, coarse) + (coarse > 1))
+
+
 def _ring(mask: np.ndarray, width_cells: float, coarse: int = 1) -> np.ndarray:
     """255 where a uint8 mask (0 / 255) is 0 but within width_cells of it (a band around it);
     computed on a `coarse`-times smaller grid for wide bands (a dilation is cheap only with
     small kernels)."""
     small = mask if coarse == 1 else cv2.resize(mask, None, fx=1 / coarse, fy=1 / coarse,
                                                  interpolation=cv2.INTER_AREA)
-    r = max(int(round(width_cells / coarse)), 1)
+    r = _ring_radius(width_cells, coarse)
     grown = cv2.dilate(small, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
     if coarse > 1:
         grown = cv2.resize(grown, mask.shape[::-1], interpolation=cv2.INTER_NEAREST)
