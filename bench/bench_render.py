@@ -20,8 +20,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from common.camera import camera_from_config  # noqa: E402
-from common.classes import Cls  # noqa: E402
 from common.config import CameraConfig  # noqa: E402
+from services.segtrain.data import TURN_PROB  # noqa: E402
+from services.segtrain.synth import random_pose  # noqa: E402
 from services.sim import motion, sensors  # noqa: E402
 from services.sim.render import FrameRenderer  # noqa: E402
 from services.sim.simulate import _other_vehicles, simulate_drives  # noqa: E402
@@ -67,13 +68,10 @@ def run(quick: bool = False, frames: int | None = None, world_spec: str = "town"
 
     # training frames (services/segtrain): each at a random pose, so each in a label window
     # of its own, whose surface masks the renderer computes for the frame's box of it (jumps)
-    roads = [m.polygon_xy_m for m in world.markings if m.cls == Cls.ROAD]
     jumper = FrameRenderer(world, camera, seed=0, jumps=True)
     jump_ms, jump_cpu = [], []
     for i in range(max(frames // 5, 10)):
-        poly = roads[int(rng.integers(len(roads)))]
-        x, y = poly[int(rng.integers(len(poly)))]
-        pose = np.array([x, y, rng.uniform(-np.pi, np.pi)])
+        pose = random_pose(world, rng, turn_prob=TURN_PROB)
         c0, t0 = time.process_time(), time.perf_counter()
         jumper.render(pose, camera.T_vehicle_camera, float(i))
         jump_ms.append(1000 * (time.perf_counter() - t0))

@@ -163,16 +163,14 @@ def test_frames_at_unrelated_poses_compute_their_box_of_the_window_with_the_same
     reads about a quarter of it). Inside the box's margin the masks are the whole window's,
     and the frames are the same bytes: the margin covers the blur and the curb and sidewalk
     rings (a narrower margin fails this test)."""
+    from services.segtrain.synth import random_pose
     from services.sim.worlds import load_world
 
     world = load_world("town", seed=2)
     rng = np.random.default_rng(5)
-    roads = [m for m in world.markings if m.cls == Cls.ROAD]
     curbs = 0
     for i in range(4):
-        poly = roads[int(rng.integers(len(roads)))].polygon_xy_m
-        x, y = poly[int(rng.integers(len(poly)))]
-        pose = np.array([x, y, rng.uniform(-np.pi, np.pi)])
+        pose = random_pose(world, rng, turn_prob=0.2)  # as training frames are posed
         boxed = FrameRenderer(world, camera, seed=i, jumps=True)
         whole = FrameRenderer(world, camera, seed=i)
         for r in (boxed, whole):
