@@ -1059,27 +1059,17 @@ def calibrate_bias(model, x_u8, y, rounds: int = 2) -> list[float]:
     fixed_y = y[~open_]
     fixed = {c: (int(((fixed_pred == c) & (fixed_y == c)).sum()),
                  int(((fixed_pred == c) | (fixed_y == c)).sum())) for c in paint}
-    logits, y = logits.permute(0, 2, 3, 1)[open_], y[open_]  # (P, classes), (P,)
-
-    def score(b):
-        pred = (logits + torch.tensor(b, dtype=torch.float32)).argmax(1)
-        pred = torch.where(pred >= NUM_CLASSES, 0, pred)
-        ious = []
-        for c in paint:
-            inter = fixed[c][0] + int(((pred == c) & (y == c)).sum())
-            union = fixed[c][1] + int(((pred == c) | (y == c)).sum())
-            ious.append(inter / max(union, 1))
-        return float(np.mean(ious)) if ious else 0.0
-
+    search = OffsetSearch(logits.permute(0, 2, 3, 1)[open_].numpy(), y[open_].numpy(),
+                          [int(c) for c in paint], fixed)
     bias = [0.0] * logits.shape[1]
-    best = before = score(bias)
+    best = before = search.score(bias)
     for _ in range(rounds):
         for c in list(paint) + list(range(NUM_CLASSES, logits.shape[1])):
-            for v in BIAS_GRID:
-                trial = bias.copy()
-                trial[c] = float(v)
-                if (got := score(trial)) > best + 1e-4:
-                    best, bias = got, trial
+            # every trial differs from `bias` in class c alone: all of c's scored at once
+            scores = search.scores_along(bias, int(c), BIAS_GRID)
+            for v, got in zip(BIAS_GRID, scores, strict=True):
+                if got > best + 1e-4:
+                    best, bias = got, bias[:c] + [float(v)] + bias[c + 1:]
     with torch.no_grad():  # a sub-pixel head: each class's offset on all its sub-pixels
         model.head.bias += torch.tensor(bias, dtype=model.head.bias.dtype,
                                         device=model.head.bias.device
@@ -1088,6 +1078,63 @@ def calibrate_bias(model, x_u8, y, rounds: int = 2) -> list[float]:
                 "(%.1f %% of pixels open)", bias, before, best,
                 100.0 * float(open_.float().mean()))
     return bias
+
+
+class OffsetSearch:
+    """The mean IoU of the paint classes when each pixel takes the class of its largest offset
+    logit, for calibrate_bias's coordinate ascent. `logits` (P, classes) float32 and `truth`
+    (P,) are its open pixels; `fixed` holds each paint class's (intersection, union) over the
+    pixels no offset on the grid can change. The labels are argmax's, ties to the lower class
+    as torch and numpy break them, and the counts exact, so a search finds the offsets that an
+    argmax per trial finds, in a fraction of the time."""
+
+    def __init__(self, logits: np.ndarray, truth: np.ndarray, paint: list[int], fixed: dict):
+        self.logits, self.truth = np.ascontiguousarray(logits, np.float32), truth.astype(np.int64)
+        self.paint, self.fixed = paint, fixed
+        self.n = self.logits.shape[1]
+
+    def score(self, bias: list[float]) -> float:
+        pred = (self.logits + np.asarray(bias, np.float32)).argmax(1)
+        return self._mean_iou(np.bincount(pred * self.n + self.truth, minlength=self.n ** 2)
+                              .reshape(self.n, self.n))
+
+    def scores_along(self, bias: list[float], c: int, values: np.ndarray) -> list[float]:
+        """The scores of `bias` with class c's offset set to each of `values` (ascending).
+        Each pixel's label is then c or the best of the other classes, whichever wins, and
+        once c wins at one value it wins at every larger one: one count of the pixels by the
+        number of values at which c loses, their other class and their truth gives every
+        value's confusion matrix."""
+        if np.any(np.diff(values) <= 0):
+            raise ValueError(f"offsets must ascend: {values}")
+        others = self.logits + np.asarray(bias, np.float32)
+        others[:, c] = -np.inf
+        best_other, other = others.max(1), others.argmax(1)
+        del others
+        wins_tie = c < other  # an equal logit goes to the lower class
+        own = np.ascontiguousarray(self.logits[:, c])
+        loses = np.zeros(len(own), np.uint8)  # at how many of the values c loses the pixel
+        for v in values:
+            shifted = own + np.float32(v)
+            loses += ~((shifted > best_other) | ((shifted == best_other) & wins_tie))
+        k, n = len(values), self.n
+        counts = np.bincount((loses.astype(np.int64) * n + other) * n + self.truth,
+                             minlength=(k + 1) * n * n).reshape(k + 1, n, n)
+        scores = []
+        for i in range(k):  # at values[i], c has the pixels it loses at i or fewer values
+            confusion = counts[i + 1:].sum(0)
+            confusion[c] += counts[:i + 1].sum((0, 1))
+            scores.append(self._mean_iou(confusion))
+        return scores
+
+    def _mean_iou(self, confusion: np.ndarray) -> float:
+        """From a confusion matrix of the open pixels (rows: label, columns: truth)."""
+        ious = []
+        for c in self.paint:
+            inter = self.fixed[c][0] + int(confusion[c, c])
+            union = (self.fixed[c][1] + int(confusion[c].sum()) + int(confusion[:, c].sum())
+                     - int(confusion[c, c]))
+            ious.append(inter / max(union, 1))
+        return float(np.mean(ious)) if ious else 0.0
 
 
 REFINE_WINDOWS = (3, 5, 7, 9)
