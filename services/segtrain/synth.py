@@ -7,6 +7,7 @@ colour comes from randomized materials: asphalt with world-anchored texture and 
 (white or yellow), verges, sky, soft shadows, vignetting. It complements the simulator's renderer
 with more appearance variety (domain randomization) and stands in for it when it is absent."""
 
+import functools
 import math
 
 import cv2
@@ -24,7 +25,7 @@ FACE = 254
 WALK = 253
 
 
-TEXTURE = 1024  # world-anchored textures tile every 51.2 m
+TEXTURE = 1024  # world-anchored textures tile every 51.2 m (a power of two: a mask wraps)
 
 
 class WorldRaster:
@@ -51,8 +52,8 @@ class WorldRaster:
     def sample(self, xy_world):
         """World points (N, 2) -> (labels, fine, coarse, wear) at the nearest cell; 0 outside."""
         lab, r, c = self._cells(xy_world)
-        tr, tc = r % TEXTURE, c % TEXTURE
-        return lab, self.fine[tr, tc], self.coarse[tr, tc], self.wear[tr, tc]
+        texel = (r & (TEXTURE - 1)) * TEXTURE + (c & (TEXTURE - 1))  # r % TEXTURE, c % ...
+        return lab, *(t.ravel().take(texel) for t in (self.fine, self.coarse, self.wear))
 
     def labels_at(self, xy_world):
         """World points (N, 2) -> the label of the nearest cell; 0 outside."""
@@ -146,6 +147,10 @@ class GroundMap:
             self.centre_ground_on = centre_v[self.centre_on]
         else:
             self.centre_on, self.centre_ground_on = self.on, self.ground_on
+        # the sky's sub-pixels and their brightness, lighter towards the horizon (the sky's
+        # colour multiplies it per frame)
+        self.sky = np.flatnonzero(~self.hit)
+        self.sky_gain = 0.8 + 0.2 * np.clip(self.uv[self.sky, 1] / h, 0.0, 1.0)[:, None]
 
 
 def _ground_at(camera: CameraModel, w: int, h: int, k: int):
@@ -201,38 +206,52 @@ def _style(rng) -> dict:
     }
 
 
+# the ground's materials: their texture gains (grain, patches), and which raster values are
+# each: 0 verge, 1-3 curb top, curb face, sidewalk (verge where a town draws no curbs), 4 road
+# surface and 5 paint (both asphalt)
+_VERGE, _CURB_TOP, _CURB_FACE, _WALK, _ROAD, _PAINT = range(6)
+_GRAIN = np.array([0.25, 0.08, 0.08, 0.08, 0.10, 0.10], np.float32)
+_PATCHES = np.array([0.2, 0.08, 0.08, 0.08, 0.12, 0.12], np.float32)
+_MATERIAL = np.full(256, _VERGE, np.uint8)
+_MATERIAL[Cls.ROAD] = _ROAD
+_MATERIAL[Cls.LANE_LINE:WALK] = _PAINT
+_MATERIAL_CURBED = _MATERIAL.copy()
+_MATERIAL_CURBED[[CURB, FACE, WALK]] = _CURB_TOP, _CURB_FACE, _WALK
+
+
 def _shade(lab, fine, coarse, wear, ground, h, s, rng):
     """The colours (H k * W k, 3) uint8 of the sub-pixels: those that see the ground from their
     world cells' labels and textures (`lab`... sampled at `ground.on`), the rest sky. Each
-    material is computed on its own pixels only."""
-    on, uv = ground.on, ground.uv
-    rgb = np.empty((len(on), 3), np.float32)
-    road = lab == Cls.ROAD
-    paint = (lab >= Cls.LANE_LINE) & (lab < WALK)
-    asphalt = road | paint
-    verge = ~asphalt
-    if s["curb"] is not None:
-        for value, colour in ((CURB, s["curb"]), (FACE, s["curb"] * s["face"]),
-                              (WALK, s["walk"])):
-            m = lab == value
-            rgb[m] = colour * (1.0 + 0.08 * fine[m, None] + 0.08 * coarse[m, None])
-            verge &= ~m
-    rgb[verge] = s["verge"] * (1.0 + 0.25 * fine[verge, None] + 0.2 * coarse[verge, None])
-    base = s["asphalt"] * (1.0 + 0.10 * fine[asphalt, None] + 0.12 * coarse[asphalt, None])
-    rgb[road] = base[road[asphalt]]
+    pixel's material looked up from its label, its colour scaled by its textures (paint worn
+    through to the asphalt under it), lit, shadowed and fogged."""
+    curbed = s["curb"] is not None
+    material = (_MATERIAL_CURBED if curbed else _MATERIAL)[lab]
+    gain = 1.0 + _GRAIN[material] * fine + _PATCHES[material] * coarse
+    colours = np.array([s["verge"], s["curb"] if curbed else s["verge"],
+                        s["curb"] * s["face"] if curbed else s["verge"], s["walk"],
+                        s["asphalt"], s["asphalt"]], np.float64).T
+    rgb, gain64 = np.empty((len(lab), 3), np.float32), gain.astype(np.float64)
+    for channel, rgb_c in zip(colours, rgb.T, strict=True):  # a channel at a time: 2x faster
+        np.multiply(channel[material], gain64, out=rgb_c, casting="unsafe")
+    paint = np.flatnonzero(material == _PAINT)
+    base = s["asphalt"] * gain[paint, None]
     colour = np.array([s["paint"], s["paint"], s["paint"]])
     tint = np.array([s["paint"], s["paint"] * 0.8, 60.0]) if s["yellow"] else colour
     pc = np.where((lab[paint] == Cls.LANE_LINE)[:, None], tint, colour)
     worn = np.clip(1.0 - s["wear"] * (1.0 + wear[paint]), 0.25, 1.0)[:, None]
-    rgb[paint] = worn * pc + (1 - worn) * base[paint[asphalt]]
+    rgb[paint] = worn * pc + (1 - worn) * base
     shadow = 1.0 - s["shadow"] * np.clip(coarse * 3.0 - 0.6, 0.0, 1.0)
     rgb *= (shadow * s["light"])[:, None]
     fog = np.exp(-ground.dist_on / s["fog_m"])[:, None]
-    out = np.empty((len(uv), 3), np.uint8)
-    out[on] = np.clip(fog * rgb + (1 - fog) * s["sky"] * 0.9, 0, 255)
-    sky = ~ground.hit
-    t = np.clip(uv[sky, 1] / h, 0.0, 1.0)[:, None]
-    out[sky] = np.clip(s["sky"] * (0.8 + 0.2 * t) + rng.normal(0, 3, (int(sky.sum()), 3)), 0, 255)
+    ground_rgb = fog * rgb
+    haze = (1 - fog) * s["sky"]
+    haze *= 0.9
+    ground_rgb += haze
+    out = np.empty((len(ground.uv), 3), np.uint8)
+    out[ground.on] = np.clip(ground_rgb, 0, 255, out=ground_rgb)
+    sky = rng.normal(0, 3, (len(ground.sky), 3))
+    sky += s["sky"] * ground.sky_gain
+    out[ground.sky] = np.clip(sky, 0, 255, out=sky)
     return out
 
 
@@ -240,12 +259,19 @@ def _camera_effects(rgb, s, rng):
     img = rgb.astype(np.float32)
     if rng.random() < 0.5:
         img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.4, 1.0))
-    h, w = img.shape[:2]
-    yy, xx = np.mgrid[0:h, 0:w]
-    r2 = ((xx - w / 2) / w) ** 2 + ((yy - h / 2) / h) ** 2
-    img *= (1.0 - rng.uniform(0, 0.5) * r2)[..., None]
+    img *= (1.0 - rng.uniform(0, 0.5) * _radius2(*img.shape[:2]))[..., None]
     img += rng.normal(0, rng.uniform(1, 6), img.shape)
     return np.clip(img, 0, 255).astype(np.uint8)
+
+
+@functools.lru_cache(maxsize=4)
+def _radius2(h: int, w: int) -> np.ndarray:
+    """Each pixel's squared distance from the image centre, in image widths and heights (the
+    vignette's falloff; read-only, shared by the frames of one size)."""
+    yy, xx = np.mgrid[0:h, 0:w]
+    r2 = ((xx - w / 2) / w) ** 2 + ((yy - h / 2) / h) ** 2
+    r2.flags.writeable = False
+    return r2
 
 
 def render_town_frames(world, n_cameras: int, poses_per_camera: int, rng, supersample=SUPER,
