@@ -17,11 +17,12 @@ def _argv(module: str, args) -> list[str]:
     return [sys.executable, "-m", module, *map(str, args)]
 
 
-def spawn(*args, env=None, module: str = "services.cli") -> subprocess.Popen:
+def spawn(*args, env=None, module: str = "services.cli", stdout=subprocess.DEVNULL,
+          stderr=subprocess.PIPE) -> subprocess.Popen:
     """`python -m module ARGS` in the background from the repository root: stdout dropped,
-    stderr kept (for the failure message)."""
-    return subprocess.Popen(_argv(module, args), cwd=REPO, env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE)
+    stderr kept (for the failure message), unless given files for them."""
+    return subprocess.Popen(_argv(module, args), cwd=REPO, env=env, stdout=stdout,
+                            stderr=stderr)
 
 
 def roadmap(*args, env=None, timeout: float = 60) -> subprocess.CompletedProcess:

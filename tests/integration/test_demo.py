@@ -9,26 +9,44 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO, roadmap
+from tests.conftest import REPO, spawn
 
 pytestmark = pytest.mark.integration
 
 ARGS = ["--small", "--world", "town", "--vehicles", "2", "--shards", "2", "--seed", "3"]
 
 
-def _demo(out: Path, *extra: str) -> dict:
-    res = roadmap("demo", *ARGS, *extra, "--out", out, timeout=400)
-    assert res.returncode == 0, f"demo failed:\n{res.stdout[-3000:]}\n{res.stderr[-6000:]}"
-    assert "paper mean" in res.stdout  # the printed table
-    return json.loads((out / "report.json").read_text())
+def _demos(runs: dict[Path, list[str]], timeout: float = 400) -> dict:
+    """`roadmap demo ARGS EXTRA --out DIR` for each {DIR: EXTRA}, all at once (each its own
+    router on its own port, its own shards, vehicles and localizer: two fleets on one machine,
+    and the fixture's time about 0.65x of one run after the other) -> {DIR: report}."""
+    procs = {}
+    for out, extra in runs.items():
+        with open(f"{out}.stdout", "w") as stdout, open(f"{out}.stderr", "w") as stderr:
+            procs[out] = spawn("demo", *ARGS, *extra, "--out", out, stdout=stdout,
+                               stderr=stderr)
+    try:
+        for proc in procs.values():
+            proc.wait(timeout=timeout)
+    finally:
+        for proc in procs.values():
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    reports = {}
+    for out, proc in procs.items():
+        stdout, stderr = (Path(f"{out}.{s}").read_text() for s in ("stdout", "stderr"))
+        assert proc.returncode == 0, f"demo {out} failed:\n{stdout[-3000:]}\n{stderr[-6000:]}"
+        assert "paper mean" in stdout  # the printed table
+        reports[out] = json.loads((out / "report.json").read_text())
+    return reports
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     base = tmp_path_factory.mktemp("demo")
-    plain = _demo(base / "plain")
-    chaos = _demo(base / "chaos", "--chaos")
-    return {"plain": (base / "plain", plain), "chaos": (base / "chaos", chaos)}
+    reports = _demos({base / "plain": [], base / "chaos": ["--chaos"]})
+    return {name: (base / name, reports[base / name]) for name in ("plain", "chaos")}
 
 
 def _no_leftover_processes(report: dict, out: Path) -> None:
