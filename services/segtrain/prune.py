@@ -35,56 +35,25 @@ WEIGHT_FRAMES = 600  # frames whose labels set the loss's class weights
 SOURCE_ARCH = "s"  # the architecture of the models pruned: the packaged one's
 
 
-def quarter_masked(model, enc_drop, dec_drop):
-    """A copy of `model` (batch norms folded: scale 1, running mean 0) whose 1/4-resolution
-    encoder channels `enc_drop` and decoder channels `dec_drop` are zero and read by nothing:
-    what `narrowed_quarter` without them computes, at the full width."""
-    import torch
-
-    m = copy.deepcopy(model)
-    mods = dict(m.named_modules())
-    w2 = model.arch["widths"][2]
-    enc_blocks = [f"enc1.{i}.pw" for i in range(len(m.enc1))]
-    with torch.no_grad():
-        for c in enc_drop:
-            for producer in ["down1.pw", *enc_blocks]:
-                mods[producer + ".0"].weight[c] = 0.0
-                mods[producer + ".1"].bias[c] = 0.0
-            for block in enc_blocks:
-                mods[block + ".0"].weight[:, c] = 0.0
-            mods["down2.pw.0"].weight[:, c] = 0.0
-            mods["dec1.pw.0"].weight[:, w2 + c] = 0.0  # the skip follows the upsampled 1/8
-        for c in dec_drop:
-            mods["dec1.pw.0"].weight[c] = 0.0
-            mods["dec1.pw.1"].bias[c] = 0.0
-            mods["dec0.pw.0"].weight[:, c] = 0.0  # the upsampled 1/4 comes first
-    return m
-
-
-def narrowed_quarter(model, enc_keep, dec_keep):
-    """`model` with only the 1/4-resolution encoder channels `enc_keep` and decoder channels
-    `dec_keep` (as many of each), every other weight copied: a RoadSegNet of that width at
-    1/4, eval mode."""
+def quarter_channels(model, enc_keep, dec_keep):
+    """(name, convolution, out_map, in_map) for each convolution of `model`: the indices of
+    its output and input channels (a depthwise convolution's one input channel is its
+    output's) that a network keeping only the 1/4-resolution encoder channels `enc_keep` and
+    decoder channels `dec_keep` computes and reads. The encoder's channels come out of down1's
+    pointwise convolution and enc1's blocks, which read them, as down2 does and dec1 after the
+    upsampled 1/8 channels of its concatenation; the decoder's come out of dec1 and are read by
+    dec0, before its 1/2-resolution skip."""
     import torch
     from torch import nn
 
-    from services.segtrain.net import RoadSegNet, _norm_after, gather_channels
-
-    if len(enc_keep) != len(dec_keep):
-        raise ValueError(f"keep as many encoder as decoder channels ({len(enc_keep)}, "
-                         f"{len(dec_keep)})")
-    w0, w1, w2, w3 = model.arch["widths"]
-    new = RoadSegNet(widths=[w0, len(enc_keep), w2, w3], num_classes=model.head.out_channels,
-                     depths=model.arch["depths"], rows=model.arch["rows"])
+    w0, w1, w2, _ = model.arch["widths"]
     enc, dec = torch.as_tensor(enc_keep), torch.as_tensor(dec_keep)
-    old, mods = dict(model.named_modules()), dict(new.named_modules())
-    for name, conv in new.named_modules():
+    for name, conv in model.named_modules():
         if not isinstance(conv, nn.Conv2d):
             continue
-        src = old[name]
-        block, depthwise = name.split(".")[0], src.groups > 1
-        out_map = torch.arange(src.out_channels)
-        in_map = torch.arange(src.in_channels // src.groups)
+        block, depthwise = name.split(".")[0], conv.groups > 1
+        out_map = torch.arange(conv.out_channels)
+        in_map = torch.arange(conv.in_channels // conv.groups)
         if (block == "down1" and not depthwise) or block == "enc1":
             out_map = enc
             if block == "enc1" and not depthwise:
@@ -97,7 +66,57 @@ def narrowed_quarter(model, enc_keep, dec_keep):
         elif block == "dec0":
             cat = torch.cat([dec, w1 + torch.arange(w0)])
             out_map, in_map = (cat, in_map) if depthwise else (out_map, cat)
-        gather_channels(conv, src, out_map, in_map, _norm_after(mods, name),
+        yield name, conv, out_map, in_map
+
+
+def quarter_masked(model, enc_drop, dec_drop):
+    """A copy of `model` (batch norms folded: scale 1, running mean 0) whose 1/4-resolution
+    encoder channels `enc_drop` and decoder channels `dec_drop` are zero and read by nothing:
+    what `narrowed_quarter` without them computes, at the full width."""
+    import torch
+
+    from services.segtrain.net import _norm_after
+
+    m = copy.deepcopy(model)
+    w1 = model.arch["widths"][1]
+    enc = [c for c in range(w1) if c not in enc_drop]
+    dec = [c for c in range(w1) if c not in dec_drop]
+    mods = dict(m.named_modules())
+    with torch.no_grad():
+        for name, conv, out_map, in_map in quarter_channels(m, enc, dec):
+            dropped_out = _complement(out_map, conv.out_channels)
+            conv.weight[dropped_out] = 0.0
+            if (norm := _norm_after(mods, name)) is not None:
+                norm.bias[dropped_out] = 0.0
+            if conv.groups == 1:
+                conv.weight[:, _complement(in_map, conv.in_channels)] = 0.0
+    return m
+
+
+def _complement(index, n: int):
+    """The indices below n that `index` does not hold."""
+    import torch
+
+    keep = torch.zeros(n, dtype=torch.bool)
+    keep[index] = True
+    return (~keep).nonzero().flatten()
+
+
+def narrowed_quarter(model, enc_keep, dec_keep):
+    """`model` with only the 1/4-resolution encoder channels `enc_keep` and decoder channels
+    `dec_keep` (as many of each), every other weight copied: a RoadSegNet of that width at
+    1/4, eval mode."""
+    from services.segtrain.net import RoadSegNet, _norm_after, gather_channels
+
+    if len(enc_keep) != len(dec_keep):
+        raise ValueError(f"keep as many encoder as decoder channels ({len(enc_keep)}, "
+                         f"{len(dec_keep)})")
+    w0, _, w2, w3 = model.arch["widths"]
+    new = RoadSegNet(widths=[w0, len(enc_keep), w2, w3], num_classes=model.head.out_channels,
+                     depths=model.arch["depths"], rows=model.arch["rows"])
+    old, mods = dict(model.named_modules()), dict(new.named_modules())
+    for name, src, out_map, in_map in quarter_channels(model, enc_keep, dec_keep):
+        gather_channels(mods[name], src, out_map, in_map, _norm_after(mods, name),
                         _norm_after(old, name))
     return new.eval()
 

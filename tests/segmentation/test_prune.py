@@ -47,6 +47,47 @@ def test_a_masked_network_computes_what_the_narrowed_one_does():
         prune.narrowed_quarter(model, enc, dec[:-1])
 
 
+def _activations_zeroed(model, enc_drop, dec_drop):
+    """`model` with the dropped channels zeroed in every feature map that holds them, as the
+    network runs (forward hooks): an account of where the 1/4-resolution channels flow that
+    knows nothing of the convolutions' weight indices (prune.quarter_channels). Encoder
+    channels: down1's and enc1's outputs and the depthwise convolutions over them (enc1's,
+    down2's, and dec1's over [upsampled 1/8, encoder]); decoder channels: dec1's output and
+    dec0's depthwise convolution over [upsampled decoder, 1/2]."""
+    w2 = model.arch["widths"][2]
+
+    def zero(channels):
+        def hook(module, inputs, output):
+            output = output.clone()
+            output[:, channels] = 0.0
+            return output
+        return hook
+
+    enc = list(enc_drop)
+    for module, channels in [(model.down1, enc), *[(b.dw, enc) for b in model.enc1],
+                             *[(b, enc) for b in model.enc1], (model.down2.dw, enc),
+                             (model.dec1.dw, [w2 + c for c in enc]), (model.dec1, dec_drop),
+                             (model.dec0.dw, list(dec_drop))]:
+        module.register_forward_hook(zero(channels))
+    return model
+
+
+def test_the_masked_network_is_the_network_without_those_channels():
+    """The weights zeroed by the channel maps compute what the network computes with those
+    channels' activations zeroed wherever they flow: the maps' wiring, checked against the
+    network itself (a wrong offset in a concatenation reads a live channel)."""
+    import copy
+
+    model = _folded_model(2)
+    x = torch.rand(2, 3, 64, 96)
+    enc_drop, dec_drop = [2, 11, 19], [0, 8, 13]
+    with torch.no_grad():
+        masked = prune.quarter_masked(model, enc_drop, dec_drop)(x)
+        hooked = _activations_zeroed(copy.deepcopy(model), enc_drop, dec_drop)(x)
+        torch.testing.assert_close(masked, hooked, atol=1e-5, rtol=1e-5)
+        assert not torch.allclose(masked, model(x), atol=1e-3)
+
+
 def test_greedy_pruning_drops_dead_channels_first_and_keeps_the_width_asked():
     model = _folded_model(1)
     with torch.no_grad():  # decoder channel 9 and encoder channel 4 made dead
