@@ -308,8 +308,8 @@ class FrameRenderer:
         is on the 4-cell grid) as one 4-channel uint8 image, so that a single linear remap
         samples all four. Paint is softened to hide the cell steps; curb and sidewalk are
         bands at a distance from the road (label: none)."""
-        road = (window >= Cls.ROAD).astype(np.uint8) * 255
-        paint = cv2.GaussianBlur((window >= Cls.LANE_LINE).astype(np.uint8) * 255, (0, 0), 0.6)
+        road = cv2.compare(window, int(Cls.ROAD), cv2.CMP_GE)  # 255 / 0, 10x numpy's time
+        paint = cv2.GaussianBlur(cv2.compare(window, int(Cls.LANE_LINE), cv2.CMP_GE), (0, 0), 0.6)
         if self.look.curb:
             curb_cells, walk_cells = self._ring_cells()
             curb = _ring(road, curb_cells)
