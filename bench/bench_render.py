@@ -1,6 +1,7 @@
 """Benchmark of the simulator's camera renderer: ms per 640 x 360 frame (RGB + labels, and labels
 only) along a town drive and (RGB + labels) at random poses, as training frames are rendered,
-plus label-only simulation speed. Writes JSON. Wall-clock and CPU-time
+plus label-only simulation speed, and seconds per training chunk of each of `roadmap train-seg`'s
+two renderers (synth.py's and the simulator's). Writes JSON. Wall-clock and CPU-time
 percentiles are both reported (on a shared, loaded machine CPU time is the steadier one).
 
     python bench/bench_render.py [--out bench_render.json] [--frames 200] [--world town]
@@ -21,6 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from common.camera import camera_from_config  # noqa: E402
 from common.config import CameraConfig  # noqa: E402
+from services.segtrain import data as seg_data  # noqa: E402
 from services.segtrain.data import TURN_PROB  # noqa: E402
 from services.segtrain.synth import random_pose  # noqa: E402
 from services.sim import motion, sensors  # noqa: E402
@@ -36,6 +38,26 @@ def _stats(ms: list[float]) -> dict:
         "p95_ms": round(float(np.percentile(a, 95)), 2),
         "frames": len(a),
     }
+
+
+def training_chunks(n: int) -> dict:
+    """Seconds per training chunk (CHUNK_FRAMES frames of one procedural town at 640 x 360,
+    rendered as `roadmap train-seg` renders them, seed 0) of synth.py's chunks and of the
+    simulator's, n of each (their median), and ms per frame."""
+    synth_tenths = round(10 * seg_data.SYNTH_SHARE)
+    out = {}
+    for name, is_synth in (("synth", True), ("simulator", False)):
+        ks = [k for k in range(10 * n) if (k % 10 < synth_tenths) == is_synth][:n]
+        seconds = []
+        for k in ks:
+            t0 = time.perf_counter()
+            seg_data._render_chunk((0, k, (640, 360), True, TURN_PROB, seg_data.SYNTH_SHARE,
+                                    "light"))
+            seconds.append(time.perf_counter() - t0)
+        median = float(np.median(seconds))
+        out[name] = {"chunk_s": round(median, 2), "chunks": len(ks),
+                     "ms_per_frame": round(1000 * median / seg_data.CHUNK_FRAMES, 1)}
+    return out
 
 
 def run(quick: bool = False, frames: int | None = None, world_spec: str = "town",
@@ -103,6 +125,7 @@ def run(quick: bool = False, frames: int | None = None, world_spec: str = "town"
             "wall_s": round(sim_s, 2),
             "frames_per_s": round(n_frames / sim_s, 1),
         },
+        "training_chunks": training_chunks(1 if quick else 3),
     }
 
 
