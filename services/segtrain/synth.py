@@ -174,7 +174,7 @@ def render(raster: WorldRaster, ground: GroundMap, pose, rng, curb_label=None):
     R, at = rot_z(pose[2])[:2, :2], [pose[0], pose[1]]
     lab, fine, coarse, wear = raster.sample(ground.ground_on @ R.T + at)
     style = _style(rng)
-    rgb = _shade(lab, fine, coarse, wear, ground, h, style, rng)
+    rgb = _shade(lab, fine, coarse, wear, ground, style, rng)
     k = ground.ss
     rgb = rgb.reshape(h * k, w * k, 3)
     if k > 1:  # the colours' sub-pixels are not the pixel centres the labels are taken at
@@ -219,7 +219,7 @@ _MATERIAL_CURBED = _MATERIAL.copy()
 _MATERIAL_CURBED[[CURB, FACE, WALK]] = _CURB_TOP, _CURB_FACE, _WALK
 
 
-def _shade(lab, fine, coarse, wear, ground, h, s, rng):
+def _shade(lab, fine, coarse, wear, ground, s, rng):
     """The colours (H k * W k, 3) uint8 of the sub-pixels: those that see the ground from their
     world cells' labels and textures (`lab`... sampled at `ground.on`), the rest sky. Each
     pixel's material looked up from its label, its colour scaled by its textures (paint worn
