@@ -1112,7 +1112,7 @@ class OffsetSearch:
         del others
         wins_tie = c < other  # an equal logit goes to the lower class
         own = np.ascontiguousarray(self.logits[:, c])
-        loses = np.zeros(len(own), np.uint8)  # at how many of the values c loses the pixel
+        loses = np.zeros(len(own), np.uint16)  # at how many of the values c loses the pixel
         for v in values:
             shifted = own + np.float32(v)
             loses += ~((shifted > best_other) | ((shifted == best_other) & wins_tie))
