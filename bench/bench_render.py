@@ -23,7 +23,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common.camera import camera_from_config  # noqa: E402
 from common.config import CameraConfig  # noqa: E402
 from services.segtrain import data as seg_data  # noqa: E402
-from services.segtrain.data import TURN_PROB  # noqa: E402
 from services.segtrain.synth import random_pose  # noqa: E402
 from services.sim import motion, sensors  # noqa: E402
 from services.sim.render import FrameRenderer  # noqa: E402
@@ -51,8 +50,8 @@ def training_chunks(n: int) -> dict:
         seconds = []
         for k in ks:
             t0 = time.perf_counter()
-            seg_data._render_chunk((0, k, (640, 360), True, TURN_PROB, seg_data.SYNTH_SHARE,
-                                    "light"))
+            seg_data._render_chunk((0, k, (640, 360), True, seg_data.TURN_PROB,
+                                    seg_data.SYNTH_SHARE, "light"))
             seconds.append(time.perf_counter() - t0)
         median = float(np.median(seconds))
         out[name] = {"chunk_s": round(median, 2), "chunks": len(ks),
@@ -93,7 +92,7 @@ def run(quick: bool = False, frames: int | None = None, world_spec: str = "town"
     jumper = FrameRenderer(world, camera, seed=0, jumps=True)
     jump_ms, jump_cpu = [], []
     for i in range(max(frames // 5, 10)):
-        pose = random_pose(world, rng, turn_prob=TURN_PROB)
+        pose = random_pose(world, rng, turn_prob=seg_data.TURN_PROB)
         c0, t0 = time.process_time(), time.perf_counter()
         jumper.render(pose, camera.T_vehicle_camera, float(i))
         jump_ms.append(1000 * (time.perf_counter() - t0))
