@@ -120,7 +120,8 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p)
 
     p = sub.add_parser("train-seg", help="train the segmentation model (needs .[train])")
-    p.add_argument("--out", default="common/models")
+    p.add_argument("--out", default=None,
+                   help="output folder (default common/models; with --border-only, MODEL's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--minutes", type=float, default=45.0,
                    help="wall-clock budget of rendering + training (default 45)")

@@ -34,11 +34,20 @@ THREADS = 2
 DEFAULT_CROP = f"{CROP_HW[1]}x{CROP_HW[0]}"
 TRIM_EVERY = 50  # steps between heap trims (_heap_trimmer)
 NO_RENDER_BUDGET_S = 24 * 3600.0  # "render every frame asked for": no time budget
+DEFAULT_OUT = Path("common/models")  # --out's default: the packaged model's folder
 BORDER_SEED_OFFSET = 31  # --border-seed's default: --seed + 31, towns the network never saw
 
 
+def out_dir(args) -> Path:
+    """Where a train-seg command writes: --out; without it, the packaged model's folder, except
+    for --border-only, which writes its log beside the model it changes in place."""
+    if args.out:
+        return Path(args.out)
+    return Path(args.border_only).parent if args.border_only else DEFAULT_OUT
+
+
 def train_command(args, cfg) -> int:
-    out = Path(args.out)
+    out = out_dir(args)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     minutes = float(args.minutes)
@@ -338,7 +347,8 @@ def _flip_and_border(args, out: Path) -> dict:
 def _border_only(args, out: Path) -> int:
     """--border-only MODEL: fit its BorderNet (services/segtrain/border.py) on --frames town
     frames of --seed, all of them rendered (no time budget), and write it into MODEL's metadata
-    when it beats the model's brightness rule; the log goes to --out/border_log.json."""
+    when it beats the model's brightness rule; the log goes to border_log.json in `out`
+    (--out, or MODEL's folder)."""
     trained_seed = _metadata(args.border_only).get("seed")
     if trained_seed == args.seed:
         raise ConfigError(f"--border-only: {args.border_only} was trained on the towns of seed "

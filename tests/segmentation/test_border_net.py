@@ -1,6 +1,8 @@
 """The learned paint-border classifier (BorderNet): features, decisions, the runtime switch and
 its fitting (the fitting tests need the optional torch extra)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from threadpoolctl import threadpool_info
@@ -272,3 +274,16 @@ def test_a_training_run_sets_flip_averaging_before_its_border_classifier(tmp_pat
     assert ("--no-flip-average" in log["command"]) is not expected
     card = (tmp_path / "MODEL_CARD.md").read_text()
     assert ("**Flip averaging**: on" in card) is expected
+
+
+def test_border_only_writes_its_log_beside_the_model_unless_told_otherwise(tmp_path):
+    """`--border-only /elsewhere/m.onnx` without --out once wrote border_log.json into the
+    packaged model's folder (common/models) of whatever checkout it ran in."""
+    from services.cli import build_parser
+    from services.segtrain.train import DEFAULT_OUT, out_dir
+
+    model = tmp_path / "run" / "m.onnx"
+    parse = build_parser().parse_args
+    assert out_dir(parse(["train-seg", "--border-only", str(model)])) == model.parent
+    assert out_dir(parse(["train-seg", "--border-only", str(model), "--out", "x"])) == Path("x")
+    assert out_dir(parse(["train-seg", "--seed", "3"])) == DEFAULT_OUT == Path("common/models")
