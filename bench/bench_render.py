@@ -43,10 +43,9 @@ def training_chunks(n: int) -> dict:
     """Seconds per training chunk (CHUNK_FRAMES frames of one procedural town at 640 x 360,
     rendered as `roadmap train-seg` renders them, seed 0) of synth.py's chunks and of the
     simulator's, n of each (their median), and ms per frame."""
-    synth_tenths = round(10 * seg_data.SYNTH_SHARE)
     out = {}
     for name, is_synth in (("synth", True), ("simulator", False)):
-        ks = [k for k in range(10 * n) if (k % 10 < synth_tenths) == is_synth][:n]
+        ks = [k for k in range(10 * n) if seg_data.is_synth_chunk(k) == is_synth][:n]
         seconds = []
         for k in ks:
             t0 = time.perf_counter()

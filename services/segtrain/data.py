@@ -79,6 +79,12 @@ def check_synth_share(share: float) -> None:
                           "every ten chunks)")
 
 
+def is_synth_chunk(k: int, synth_share: float = SYNTH_SHARE) -> bool:
+    """Whether chunk k of a run renders with synth.py (else the simulator): the first
+    10 * synth_share chunks of every 10."""
+    return k % 10 < round(10 * synth_share)
+
+
 def _share_key(synth_share: float) -> str:
     """The cache key's part for the synth share: empty for the default (older caches stay)."""
     return "" if synth_share == SYNTH_SHARE else f"-y{round(10 * synth_share)}"
@@ -299,7 +305,7 @@ def _render_chunk(job):
     seed, k, input_size, sim, turn_prob, synth_share, junctions = job
     rng = np.random.default_rng([seed, k])
     world = town_world(10_000 * (seed + 1) + k, rng, junctions)
-    if sim and k % 10 >= round(10 * synth_share):
+    if sim and not is_synth_chunk(k, synth_share):
         pairs = _sim_frames(world, rng, turn_prob)
     else:
         from services.segtrain.synth import render_town_frames
