@@ -69,3 +69,21 @@ def router():
             proc.wait(10)
         except subprocess.TimeoutExpired:
             proc.kill()
+
+
+@pytest.fixture(scope="session")
+def s_export(tmp_path_factory) -> str:
+    """An exported RoadSegNet of train-seg's default architecture (`s`), seeded random weights:
+    the --init, --teacher and --prune file of the training tests, which check what the commands
+    do with such a file whatever network the product packages (common/models/roadseg.onnx)."""
+    torch = pytest.importorskip("torch", reason="training tests need the .[train] extra (torch)")
+    from services.segtrain.archs import ARCHS
+    from services.segtrain.data import TRAIN_CLASSES
+    from services.segtrain.net import RoadSegNet
+    from services.segtrain.train import export_onnx
+
+    torch.manual_seed(0)
+    model = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]).eval()
+    path = tmp_path_factory.mktemp("s-export") / "roadseg.onnx"
+    export_onnx(model, path, seed=0)
+    return str(path)

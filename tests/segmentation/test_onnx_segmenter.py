@@ -1,5 +1,6 @@
 """OnnxSegmenter runtime: the packaged model, head mapping, factory, and the real TwinLiteNet."""
 
+import json
 from functools import partial
 
 import cv2
@@ -169,9 +170,9 @@ def test_upsampled_argmax_equals_the_resize_then_argmax(rng):
 
 @needs_model
 def test_sky_rows_are_labelled_none_and_the_network_sees_only_the_rows_below():
-    from tests.segmentation.test_refine import _road_with_lines
+    from services.segtrain.evaluate import render_heldout
 
-    image = _road_with_lines()
+    (image, _), = render_heldout("town:0.6", frames=1, seed=3)[0]  # a town frame, as rendered
     full = OnnxSegmenter(refine={}, border_net=False)
     # 72 rows, in steps of 16: 64
     sky = OnnxSegmenter(refine={}, border_net=False, sky_fraction=0.2)
@@ -181,9 +182,11 @@ def test_sky_rows_are_labelled_none_and_the_network_sees_only_the_rows_below():
     assert (b[:64] == Cls.NONE).all()
     paint = a[64:] >= Cls.LANE_LINE
     assert paint.sum() > 500
-    # below the sky the network's context changes only at the top of its input: for run J1,
-    # 97.9 % of the labels agree, the rest road / none at the far road near the horizon
-    assert (a[64:] == b[64:]).mean() > 0.97 and (b[64:][paint] == a[64:][paint]).mean() > 0.95
+    # below the sky the network's context changes only at the top of its input: 99.8 % of the
+    # labels agree and 99.3 % of the paint for the m64 network of 2026-11-28 (99.6 % for B1).
+    # (A line drawing instead of a rendered frame moved 10 % of m64's paint: its 1/16 stage
+    # sees the whole frame, and the drawing is far from any frame it learned from.)
+    assert (a[64:] == b[64:]).mean() > 0.99 and (b[64:][paint] == a[64:][paint]).mean() > 0.97
     # bilinear labels at another size keep the sky in proportion
     big = OnnxSegmenter(refine={}, border_net=False, sky_fraction=0.2, upsample="bilinear")
     labels = big.segment(np.repeat(np.repeat(image, 2, 0), 2, 1))
@@ -293,11 +296,17 @@ def test_sub_pixel_logits_mirror_and_score_at_full_resolution(rng):
 def test_flip_averaging_follows_the_model_unless_configured_off():
     import dataclasses
 
-    from common.config import RoadmapConfig
-    from common.segmentation import configured_onnx
+    import onnxruntime as ort
 
-    assert OnnxSegmenter().flip_average  # the packaged model's metadata asks for it
+    from common.config import RoadmapConfig
+    from common.segmentation import META_KEY, configured_onnx
+
+    session = ort.InferenceSession(str(DEFAULT_MODEL), providers=["CPUExecutionProvider"])
+    asks = json.loads(session.get_modelmeta().custom_metadata_map[META_KEY]).get(
+        "flip_average", False)  # what the packaged model's metadata asks for
+    assert OnnxSegmenter().flip_average is asks
     assert not OnnxSegmenter(flip_average=False).flip_average
+    assert OnnxSegmenter(flip_average=True).flip_average
     cfg = RoadmapConfig().segmentation
-    assert configured_onnx(cfg).flip_average
+    assert configured_onnx(cfg).flip_average is asks
     assert not configured_onnx(dataclasses.replace(cfg, flip_average=False)).flip_average

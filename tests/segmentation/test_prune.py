@@ -7,7 +7,6 @@ import pytest
 
 torch = pytest.importorskip("torch", reason="training tests need the .[train] extra (torch)")
 
-from common.segmentation import DEFAULT_MODEL  # noqa: E402
 from services.segtrain import prune  # noqa: E402
 from services.segtrain.archs import ARCHS  # noqa: E402
 from services.segtrain.data import TRAIN_CLASSES  # noqa: E402
@@ -109,14 +108,15 @@ def test_greedy_pruning_drops_dead_channels_first_and_keeps_the_width_asked():
 
 
 def test_the_prune_command_writes_an_init_for_the_narrower_architecture(
-        tmp_path, monkeypatch, frame_cache):
-    """On a few town frames: the packaged model pruned to p16 and widened computes the pruned
-    network (its loss is the last drop's), and a fine-tune starts from it with --arch p16."""
+        tmp_path, monkeypatch, frame_cache, s_export):
+    """On a few town frames: an export of the default architecture pruned to p16 and widened
+    computes the pruned network (its loss is the last drop's), and a fine-tune starts from it
+    with --arch p16."""
     from services.cli import main
 
     monkeypatch.setattr(prune, "PRUNE_FRAMES", 1)
     out = tmp_path / "pruned"
-    assert main(["train-seg", "--prune", str(DEFAULT_MODEL), "--arch", "p16", "--out", str(out),
+    assert main(["train-seg", "--prune", s_export, "--arch", "p16", "--out", str(out),
                  "--seed", "5", "--frames", "8", "--workers", "1", *frame_cache]) == 0
     log = json.loads((out / "prune_log.json").read_text())
     assert log["widths"] == [16, 16, 48, 64] and log["loss_frames"] == 1
@@ -129,17 +129,16 @@ def test_the_prune_command_writes_an_init_for_the_narrower_architecture(
                  "2", "--batch", "2", "--workers", "1", *frame_cache, "--crop", "full",
                  "--init", str(out / "roadseg.pt"), "--arch", "p16", "--no-flip-average"]) == 0
     assert json.loads((tuned / "train_log.json").read_text())["arch"] == "p16"
-    assert main(["train-seg", "--prune", str(DEFAULT_MODEL), "--arch", "p16", "--out", str(out),
+    assert main(["train-seg", "--prune", s_export, "--arch", "p16", "--out", str(out),
                  "--seed", "5", "--frames", "8", "--workers", "1", *frame_cache]) == 0
     assert (out / "roadseg.pt").read_bytes() == first  # the same file again
 
 
-def test_prune_refuses_what_it_cannot_do_before_rendering(tmp_path, capsys):
+def test_prune_refuses_what_it_cannot_do_before_rendering(tmp_path, capsys, s_export):
     from services.cli import main
 
     out = tmp_path / "out"
-    assert main(["train-seg", "--prune", str(DEFAULT_MODEL), "--arch", "m", "--out",
-                 str(out)]) == 1
+    assert main(["train-seg", "--prune", s_export, "--arch", "m", "--out", str(out)]) == 1
     assert "must be --arch s with its 1/4-resolution width changed" in capsys.readouterr().err
     assert main(["train-seg", "--prune", str(tmp_path / "none.onnx"), "--arch", "p16",
                  "--out", str(out)]) == 1

@@ -161,7 +161,8 @@ def test_a_soup_exports_the_average_of_its_runs(tmp_path, frame_cache):
             torch.testing.assert_close(value, (light[name] + heavy[name]) / 2)
 
 
-def test_average_init_exports_the_fine_tune_blended_with_its_start(tmp_path, frame_cache):
+def test_average_init_exports_the_fine_tune_blended_with_its_start(tmp_path, frame_cache,
+                                                                   s_export):
     """--average-init 0.25: the export is 0.75 x the trained weights + 0.25 x --init's (the
     head's bias aside: the offsets are calibrated on the blend); the trained ones are kept."""
     from services.cli import main
@@ -170,7 +171,7 @@ def test_average_init_exports_the_fine_tune_blended_with_its_start(tmp_path, fra
     from services.segtrain.net import RoadSegNet
     from services.segtrain.train import _load_init
 
-    init = str(DEFAULT_MODEL)
+    init = s_export
     out = tmp_path / "wise"
     assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "24", "--steps", "4",
                  "--batch", "1", "--workers", "1", *frame_cache, "--init", init,
@@ -363,19 +364,20 @@ def test_teacher_logits_are_the_flip_average_at_half_resolution():
     torch.testing.assert_close(got.float(), want, atol=2e-2, rtol=1e-2)
 
 
-def test_a_distilled_run_trains_towards_its_init_and_says_so(tmp_path, frame_cache):
+def test_a_distilled_run_trains_towards_its_init_and_says_so(tmp_path, frame_cache, s_export):
     from services.cli import main
 
     out = tmp_path / "distil"
     assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "24", "--steps", "4",
-                 "--batch", "2", "--workers", "1", *frame_cache, "--init", str(DEFAULT_MODEL),
+                 "--batch", "2", "--workers", "1", *frame_cache, "--init", s_export,
                  "--crop", "full", "--distill", "1", "--no-flip-average"]) == 0
     log = json.loads((out / "train_log.json").read_text())
     assert log["distill"] == 1.0 and "--distill 1" in log["command"]
     assert log["steps"] == 4 and np.isfinite(log["final_loss"])
 
 
-def test_a_run_from_scratch_on_crops_distils_an_exported_teacher(tmp_path, frame_cache):
+def test_a_run_from_scratch_on_crops_distils_an_exported_teacher(tmp_path, frame_cache,
+                                                                  s_export):
     """--teacher without --init, on random crops (the default): the teacher's logits are
     computed once per frame and cropped with each batch."""
     from services.cli import main
@@ -383,15 +385,15 @@ def test_a_run_from_scratch_on_crops_distils_an_exported_teacher(tmp_path, frame
     out = tmp_path / "distil-crops"
     assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "24", "--steps", "4",
                  "--batch", "2", "--workers", "1", *frame_cache, "--arch", "p16",
-                 "--distill", "1", "--teacher", str(DEFAULT_MODEL), "--no-flip-average"]) == 0
+                 "--distill", "1", "--teacher", s_export, "--no-flip-average"]) == 0
     log = json.loads((out / "train_log.json").read_text())
-    assert log["teacher"] == str(DEFAULT_MODEL) and log["init"] is None
+    assert log["teacher"] == s_export and log["init"] is None
     assert log["crop_hw"] == [224, 384] and "--teacher" in log["command"]
     assert log["steps"] == 4 and np.isfinite(log["final_loss"])
 
 
-def test_an_exported_teacher_gives_its_heads_flip_averaged_logits_through_onnxruntime():
-    """--teacher: the packaged export, run by onnxruntime, gives what the file's network loaded
+def test_an_exported_teacher_gives_its_heads_flip_averaged_logits_through_onnxruntime(s_export):
+    """--teacher: an export, run by onnxruntime, gives what the file's network loaded
     into torch gives: the flip-averaged logits of every trained class (the curb class too,
     before the export folds it into none), at 1/2 resolution, in float16."""
     from services.segtrain.archs import ARCHS
@@ -404,9 +406,9 @@ def test_an_exported_teacher_gives_its_heads_flip_averaged_logits_through_onnxru
     )
 
     student = RoadSegNet(num_classes=CLASSES, **ARCHS["p16"])
-    teacher = _frozen_copy(exported_model_like(str(DEFAULT_MODEL), student))
+    teacher = _frozen_copy(exported_model_like(s_export, student))
     x = (torch.rand(2, 3, 32, 640) * 255).to(torch.uint8)  # the export's width is fixed
-    got = onnx_teacher_logits(str(DEFAULT_MODEL), x, threads=1)
+    got = onnx_teacher_logits(s_export, x, threads=1)
     want = teacher_logits(teacher, x)
     assert got.dtype == torch.float16 and got.shape == (2, CLASSES, 16, 320)
     np.testing.assert_allclose(got.float().numpy(), want.float().numpy(), atol=0.02)
