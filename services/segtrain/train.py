@@ -104,6 +104,13 @@ def train_command(args, cfg) -> int:
     if args.soup and not args.export_only:
         return _train_soup(args, out, t_start)
     members = load_export_members(args)  # before minutes of rendering
+    for weights in export_weights(args):
+        run_log = Path(weights).parent / "train_log.json"
+        differences = (export_frame_differences(args, json.loads(run_log.read_text()))
+                       if run_log.is_file() else [])
+        if differences:
+            logger.warning("--export-only %s: calibrating on held-out frames other than its "
+                           "run's: %s", weights, "; ".join(differences))
     render_budget_s = _render_budget_s(args)
     frames, labels = seg_data.training_set(seed=args.seed, input_size=INPUT_SIZE,
                                            budget_s=render_budget_s, max_frames=args.frames,
@@ -161,6 +168,27 @@ def load_export_members(args) -> list[dict]:
             raise ConfigError(f"--export-only: {path} is not of {paths[0]}'s architecture "
                               f"({member['arch']} against {first['arch']})")
     return members
+
+
+def export_frame_differences(args, run_log: dict) -> list[str]:
+    """How --export-only's rendering settings differ from those of the run that saved the
+    weights (its train_log.json): each difference gives held-out frames other than the run's
+    to calibrate on. A soup of runs, or another set on purpose, is allowed: the caller warns.
+    A --steps run renders every frame and a budgeted one what its minutes allow, so an export
+    of a --steps run without --steps calibrates on a set it renders anew (2026-11-28)."""
+    diffs = []
+    for key in ("seed", "frames"):
+        if run_log.get(key) is not None and run_log[key] != getattr(args, key):
+            diffs.append(f"--{key} {getattr(args, key)}, the run's {run_log[key]}")
+    if "command" in run_log and ("--steps" in run_log["command"].split()) != (
+            args.steps is not None):
+        diffs.append("--steps given to " + ("the run, not to the export" if args.steps is None
+                                            else "the export, not to the run"))
+    doses = {member.get("junctions") for member in run_log.get("soup", [])}
+    if len(doses) == 1 and doses != {export_junctions(args)}:
+        diffs.append(f"junction lines {export_junctions(args)}, the run's {doses.pop()}"
+                     " (--soup DOSE)")
+    return diffs
 
 
 def export_junctions(args) -> str:

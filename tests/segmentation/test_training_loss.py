@@ -534,3 +534,30 @@ def test_train_model_itself_refuses_a_switch_it_cannot_make(tmp_path):
         with pytest.raises(ConfigError):
             train_model(frames, labels, tmp_path, seed=0, train_s=1.0, steps=1,
                         crop_hw=crop_hw, full_after=share)
+
+
+def test_an_export_names_how_its_frames_differ_from_its_runs():
+    """--export-only of a run's weights calibrates on the held-out frames of the command's own
+    rendering settings; each setting that gives other frames than the run's is named (a
+    --steps run's export without --steps rendered a new set under a budget, 2026-11-28)."""
+    from argparse import Namespace
+
+    from services.segtrain.train import export_frame_differences
+
+    run = {"seed": 3, "frames": 4800, "soup": [{"junctions": "heavy"}],
+           "command": "roadmap train-seg --out DIR --seed 3 --steps 1200 --frames 4800"}
+
+    def export(**kw):
+        return Namespace(**{"seed": 3, "frames": 4800, "steps": 1200, "soup": ["heavy"], **kw})
+
+    assert export_frame_differences(export(), run) == []
+    assert export_frame_differences(export(steps=7), run) == []  # every frame rendered alike
+    assert export_frame_differences(export(steps=None), run) == [
+        "--steps given to the run, not to the export"]
+    assert export_frame_differences(export(seed=4, frames=2400, soup=None), run) == [
+        "--seed 4, the run's 3", "--frames 2400, the run's 4800",
+        "junction lines light, the run's heavy (--soup DOSE)"]
+    budgeted = {**run, "command": "roadmap train-seg --seed 3 --minutes 45"}
+    assert export_frame_differences(export(), budgeted) == [
+        "--steps given to the export, not to the run"]
+    assert export_frame_differences(export(seed=9, steps=None, soup=None), {}) == []
