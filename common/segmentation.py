@@ -155,7 +155,7 @@ class OnnxSegmenter(Segmenter):
         if not path.is_file():
             raise ConfigError(f"segmentation model not found: {path}")
         self._session = _session(path, intra_op_threads)
-        meta = json.loads(self._session.get_modelmeta().custom_metadata_map.get(META_KEY, "{}"))
+        meta = session_metadata(self._session)
         inp = self._session.get_inputs()[0]
         self._input_name = inp.name
         self.input_size = tuple(input_size or meta.get("input_size")
@@ -354,6 +354,11 @@ class OnnxSegmenter(Segmenter):
         if labels.shape != (h, w):
             labels = cv2.resize(labels, (w, h), interpolation=cv2.INTER_NEAREST)
         return labels
+
+
+def session_metadata(session) -> dict:
+    """The `roadmap.segmentation` metadata of an onnxruntime session's model ({} without)."""
+    return json.loads(session.get_modelmeta().custom_metadata_map.get(META_KEY, "{}"))
 
 
 def _session(path: Path, threads: int, fixed_dims: dict | None = None):

@@ -18,7 +18,7 @@ import numpy as np
 
 from common.classes import MARKINGS, NAMES, NUM_CLASSES, Cls
 from common.errors import ConfigError
-from common.segmentation import META_KEY, OnnxSegmenter, refine_paint_borders
+from common.segmentation import META_KEY, OnnxSegmenter, refine_paint_borders, session_metadata
 from services.segtrain import data as seg_data
 from services.segtrain.archs import ARCHS
 from services.segtrain.evaluate import IouAccumulator, mean_paint_iou, segmenter_iou
@@ -1410,7 +1410,7 @@ def reexport_onnx(src, dst) -> dict:
     from services.segtrain.net import RoadSegNet, load_onnx_weights
 
     sess = ort.InferenceSession(str(src), providers=["CPUExecutionProvider"])
-    meta = json.loads(sess.get_modelmeta().custom_metadata_map.get(META_KEY, "{}"))
+    meta = session_metadata(sess)
     if "arch" not in meta:
         raise ConfigError(f"{src}: not a RoadSegNet export (no 'arch' in its metadata)")
     arch = dict(meta["arch"])

@@ -1,6 +1,5 @@
 """OnnxSegmenter runtime: the packaged model, head mapping, factory, and the real TwinLiteNet."""
 
-import json
 from functools import partial
 
 import cv2
@@ -299,11 +298,10 @@ def test_flip_averaging_follows_the_model_unless_configured_off():
     import onnxruntime as ort
 
     from common.config import RoadmapConfig
-    from common.segmentation import META_KEY, configured_onnx
+    from common.segmentation import configured_onnx, session_metadata
 
     session = ort.InferenceSession(str(DEFAULT_MODEL), providers=["CPUExecutionProvider"])
-    asks = json.loads(session.get_modelmeta().custom_metadata_map[META_KEY]).get(
-        "flip_average", False)  # what the packaged model's metadata asks for
+    asks = session_metadata(session).get("flip_average", False)  # what the file asks for
     assert OnnxSegmenter().flip_average is asks
     assert not OnnxSegmenter(flip_average=False).flip_average
     assert OnnxSegmenter(flip_average=True).flip_average

@@ -1,13 +1,12 @@
 """Paint borders re-decided on the image (refine_paint_borders): runtime and calibration."""
 
-import json
 
 import numpy as np
 import pytest
 
 from common.classes import Cls
 from common.errors import ConfigError
-from common.segmentation import DEFAULT_MODEL, OnnxSegmenter, refine_paint_borders
+from common.segmentation import DEFAULT_MODEL, OnnxSegmenter, refine_paint_borders, session_metadata
 
 ROAD_GREY, PAINT_GREY = 80, 200
 
@@ -116,5 +115,5 @@ def test_calibration_keeps_labels_that_need_no_refinement(tmp_path):
     set_metadata(model, refine=found)
     seg = OnnxSegmenter(model)
     assert seg.refine == found
-    meta = json.loads(seg._session.get_modelmeta().custom_metadata_map["roadmap.segmentation"])
+    meta = session_metadata(seg._session)
     assert meta["input_size"] == [640, 360]  # the other keys kept

@@ -1,7 +1,6 @@
 """RoadSegNet's row embedding, its half-resolution export and fine-tuning from a saved run
 (needs the optional torch extra: `pip install .[train]`)."""
 
-import json
 
 import numpy as np
 import pytest
@@ -9,7 +8,7 @@ import pytest
 torch = pytest.importorskip("torch", reason="training tests need the .[train] extra (torch)")
 
 from common.classes import NUM_CLASSES  # noqa: E402
-from common.segmentation import OnnxSegmenter  # noqa: E402
+from common.segmentation import OnnxSegmenter, session_metadata  # noqa: E402
 from services.segtrain import train  # noqa: E402
 from services.segtrain.archs import ARCHS  # noqa: E402
 from services.segtrain.data import TRAIN_CLASSES  # noqa: E402
@@ -169,7 +168,7 @@ def test_an_export_pads_its_channels_to_16_and_loads_into_either_width(tmp_path,
     assert not [n for n in graph.node if n.op_type == "Conv" and n.input[0] in concatenated]
     assert sum("/split" in n.name for n in graph.node if n.op_type == "Conv") == 12
     session = ort.InferenceSession(str(path))
-    meta = json.loads(session.get_modelmeta().custom_metadata_map["roadmap.segmentation"])
+    meta = session_metadata(session)
     assert meta["arch"]["widths"] == ARCHS["w16"]["widths"]
     x = torch.from_numpy(rng.random((1, 3, 96, 640), np.float32))  # the export: 640 wide
     got = session.run(None, {"image": x.numpy()})[0]
