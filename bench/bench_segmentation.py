@@ -17,8 +17,9 @@ IoU per class = sum of intersections / sum of unions over all frames of a world,
 full resolution (labels resized back from the model's input size), and also inside the IPM ROI
 (the pixels the mapper actually uses), each with a 90 % bootstrap interval over the frames
 (`iou_ci90`; for the mean over worlds, each world's frames redrawn). The model runs as the
-product runs it: the rows above rays rising segmentation.sky_margin_deg above level (the
-nominal camera's `sky_rows`) are not segmented (`--sky-margin-deg -1`: every row). Speed:
+product runs it: the rows above rays rising the model's sky margin above level (metadata
+`sky_margin_deg`, else 10 degrees; the nominal camera's `sky_rows`) are not segmented
+(`--sky-margin-deg D` for every model; -1: every row). Speed:
 p50/p95 ms of `segment_model_size` (resize, network, upsampling, argmax, border refinement) at
 the model's input size on one core (one onnxruntime thread, OpenCV and the border
 classifier's BLAS held to one thread), and of the whole `segment()` call at full
@@ -49,9 +50,9 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common.camera import build_ipm_lookup, camera_from_config, sky_fraction  # noqa: E402
+from common.camera import build_ipm_lookup, camera_from_config  # noqa: E402
 from common.classes import NAMES, Cls  # noqa: E402
-from common.config import CameraConfig, RoiConfig, SegmentationConfig, VehicleConfig  # noqa: E402
+from common.config import CameraConfig, RoiConfig, VehicleConfig  # noqa: E402
 from common.segmentation import DEFAULT_MODEL, get_segmenter  # noqa: E402
 from services.demo.bench import cpu_description  # noqa: E402
 from services.segtrain.evaluate import (  # noqa: E402
@@ -179,19 +180,17 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
     None, as the model's metadata asks (as the product runs it); False / True, off / on."""
     import onnxruntime
 
-    if sky_margin_deg is None:
-        sky_margin_deg = SegmentationConfig().sky_margin_deg
-    # the rows the product leaves out for render_heldout's camera
-    sky = sky_fraction(camera_from_config(CameraConfig()), sky_margin_deg)
-    seg = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, sky_fraction=sky,
+    # the rows the product leaves out for render_heldout's camera (None: each model's own)
+    sky = {"camera": camera_from_config(CameraConfig()), "sky_margin_deg": sky_margin_deg}
+    seg = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, **sky,
                         border_net=border_net, flip_average=flip_average)
     # the model as the mapping vehicles run it: paint it is unsure of left unknown
-    gated = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, sky_fraction=sky,
+    gated = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, **sky,
                           min_margin=VehicleConfig().paint_min_margin, flip_average=flip_average)
     borders = {"model": {}, "rule": {"border_net": False},
                "none": {"border_net": False, "refine": {}}}[baseline_borders]
     baseline = (get_segmenter("onnx", model_path=baseline_path, intra_op_threads=1,
-                              sky_fraction=sky, **borders)
+                              **sky, **borders)
                 if baseline_path else None)
     rng, paired_rng = np.random.default_rng(0), np.random.default_rng(1)
     report = {
@@ -199,7 +198,7 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
         "refine": seg.refine,  # paint borders re-decided on the image ({}: off)
         "border_net": seg.border_net is not None,  # by the learned classifier instead
         "flip_average": seg.flip_average,  # the network's logits of the image and its mirror
-        "sky_margin_deg": sky_margin_deg, "sky_rows": seg.sky_rows,  # rows not segmented
+        "sky_margin_deg": seg.sky_margin_deg, "sky_rows": seg.sky_rows,  # rows not segmented
         "python": platform.python_version(), "onnxruntime": onnxruntime.__version__,
         **cpu_description(),  # the speed depends on the vector units as much as on the model
         "seed": seed, "targets": TARGETS, "worlds": {},
@@ -236,6 +235,7 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
         base_iou = _mean_over_worlds(
             {w: {"iou": e["baseline"]["iou"]} for w, e in report["worlds"].items()}, "iou")
         report["baseline"] = {"model": str(baseline_path), "refine": baseline.refine,
+                              "sky_rows": baseline.sky_rows,
                               "border_net": baseline.border_net is not None,
                               "flip_average": baseline.flip_average,
                               "iou": base_iou,
@@ -302,7 +302,8 @@ def main(argv=None) -> int:
                              "classifier or the rule buys)")
     parser.add_argument("--sky-margin-deg", type=float, default=None,
                         help="leave out the rows above rays rising this far above level, as the "
-                             "product does (default: segmentation.sky_margin_deg; -1: none)")
+                             "product does (default: each model's own, as the product's "
+                             "default segmentation.sky_margin_deg; -1: none)")
     parser.add_argument("--border-net", action=argparse.BooleanOptionalAction, default=None,
                         help="decide paint borders by the model's learned border classifier "
                              "(default: if it has one, as segmentation.border_net does); "

@@ -95,9 +95,12 @@ class SegmentationConfig:
     intra_op_threads: int = 1
     # rows above the rays that rise this many degrees above level (from the camera's
     # calibration) show no road and are not run through the network (labelled none); < 0:
-    # every row is segmented. 10: the top 48 of 360 rows of the default camera, 2.6 ms a
-    # frame less; the benchmark's IoU moved by 0.0015 or less (common/models/HISTORY.md)
-    sky_margin_deg: float = 10.0
+    # every row is segmented; empty: the model's own (metadata `sky_margin_deg`), else
+    # common.segmentation.DEFAULT_SKY_MARGIN_DEG. 10: the top 48 of 360 rows of the default
+    # camera, 2.6 ms a frame less for an `s` network, its IoU moved by 0.0015 or less; a
+    # network whose coarsest stage reads the whole frame (m64) asks for every row
+    # (common/models/HISTORY.md)
+    sky_margin_deg: float | None = None  # empty: the model's own, else 10 degrees
     # paint borders decided by the model's learned border classifier (metadata `border_net`,
     # common.segmentation.BorderNet), if it has one, instead of its brightness rule
     # (`refine`): on the benchmark's frames +0.0125 lane-line, +0.012 crosswalk, +0.017

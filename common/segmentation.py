@@ -15,6 +15,8 @@ import cv2
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
+from common import camera as cameras
+from common.camera import CameraModel
 from common.classes import NUM_CLASSES, Cls
 from common.errors import ConfigError
 
@@ -32,6 +34,9 @@ META_KEY = "roadmap.segmentation"
 # 0.740 with the last row repeated and 0.665 with zeros. 2026-11-25, every second benchmark
 # frame, with border_net.)
 SKY_ROW_STEP = 16
+# the sky margin (degrees above level) of a model whose metadata names none: `s` networks such
+# as B1 lose no IoU when the rows above it are left out
+DEFAULT_SKY_MARGIN_DEG = 10.0
 
 
 class Segmenter:
@@ -130,7 +135,10 @@ class OnnxSegmenter(Segmenter):
     is labelled 0 without running the network there; the network sees only the rows below
     (rounded down to SKY_ROW_STEP rows at the model's input size, its coarsest stride, so its
     grid stays the full frame's). Only for a model whose input height is dynamic (ours since
-    2026-11-25); a fixed-height model segments every row (a warning says so)."""
+    2026-11-25); a fixed-height model segments every row (a warning says so). Or, given the
+    `camera` (CameraModel) instead, the rows above the rays rising `sky_margin_deg` above
+    level; None takes the model's own margin (metadata `sky_margin_deg`; < 0: every row, for a
+    network whose coarsest stage reads the whole frame), else DEFAULT_SKY_MARGIN_DEG."""
 
     def __init__(
         self,
@@ -148,6 +156,8 @@ class OnnxSegmenter(Segmenter):
         border_net: dict | bool | None = None,
         min_margin: float = 0.0,
         sky_fraction: float = 0.0,
+        camera: CameraModel | None = None,
+        sky_margin_deg: float | None = None,
         flip_average: bool | None = None,
         name: str | None = None,
     ):
@@ -163,6 +173,17 @@ class OnnxSegmenter(Segmenter):
         if not all(isinstance(v, int) for v in self.input_size):
             raise ConfigError(f"{path}: the model's input size is dynamic ({inp.shape}); "
                               "give input_size=(W, H)")
+        self.sky_margin_deg = None  # the margin the sky rows follow from, given a camera
+        if camera is not None:
+            if sky_fraction:
+                raise ConfigError("give sky_fraction or a camera (and sky_margin_deg), not both")
+            if sky_margin_deg is None:  # the model's own (null: none named)
+                sky_margin_deg = meta.get("sky_margin_deg")
+            self.sky_margin_deg = float(DEFAULT_SKY_MARGIN_DEG if sky_margin_deg is None
+                                        else sky_margin_deg)
+            sky_fraction = cameras.sky_fraction(camera, self.sky_margin_deg)
+        elif sky_margin_deg is not None:
+            raise ConfigError("sky_margin_deg needs the camera it is measured in")
         if not 0.0 <= sky_fraction < 1.0:
             raise ConfigError(f"sky_fraction must be in [0, 1), got {sky_fraction}")
         h = self.input_size[1]
@@ -823,14 +844,14 @@ def configured_onnx(seg, *, min_margin: float = 0.0, camera=None) -> OnnxSegment
     """The ONNX segmenter a SegmentationConfig `seg` names (the packaged model when its
     model_path is empty), with the caller's `min_margin`: the mapping vehicles and the car
     each set their own (vehicle.paint_min_margin, localizer.paint_min_margin). Given the
-    `camera` (CameraModel) and `seg.sky_margin_deg` >= 0, the rows above rays rising that far
-    above level are not segmented (OnnxSegmenter's sky_fraction). The model's learned border
+    `camera` (CameraModel), the rows above rays rising `seg.sky_margin_deg` above level (None:
+    the model's own margin, else DEFAULT_SKY_MARGIN_DEG; < 0: none) are not segmented
+    (OnnxSegmenter's camera and sky_margin_deg). The model's learned border
     classifier runs if it has one, unless `seg.border_net` is off (then its brightness rule),
     and so does flip averaging if the model asks for it, unless `seg.flip_average` is off."""
-    from common.camera import sky_fraction
-
-    sky = 0.0 if camera is None else sky_fraction(camera, seg.sky_margin_deg)
     return get_segmenter("onnx", model_path=seg.model_path,
                          intra_op_threads=seg.intra_op_threads, min_margin=min_margin,
-                         sky_fraction=sky, border_net=None if seg.border_net else False,
+                         camera=camera,
+                         sky_margin_deg=None if camera is None else seg.sky_margin_deg,
+                         border_net=None if seg.border_net else False,
                          flip_average=None if seg.flip_average else False)

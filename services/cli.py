@@ -187,6 +187,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="leave the export's metadata `flip_average` off (default on: the "
                         "runtime averages the network's logits of the image and of its mirror "
                         "image, and the border classifier is fitted on those averaged logits)")
+    p.add_argument("--sky-margin-deg", type=float, default=None, metavar="D",
+                   help="write the export's metadata `sky_margin_deg`: the runtime leaves out "
+                        "the rows above rays rising D degrees above level (-1: none, for a "
+                        "network whose coarsest stage reads the whole frame, as m64's does); "
+                        "default: not written (the runtime's default, 10)")
     p.add_argument("--border-seed", type=int, default=None,
                    help="the towns of the border classifier's frames (default: --seed + 31)")
     p.add_argument("--reexport", default=None, metavar="MODEL",

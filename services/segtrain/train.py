@@ -361,10 +361,13 @@ def _export_only(args, out: Path, frames: np.ndarray, labels: np.ndarray,
 
 
 def _flip_and_border(args, out: Path) -> dict:
-    """Flip averaging into out/roadseg.onnx's metadata, then (--border-frames) its border
-    classifier, fitted on the logits the runtime will decide -> their part of the log."""
-    set_metadata(out / "roadseg.onnx", flip_average=bool(args.flip_average))
+    """Flip averaging (and --sky-margin-deg) into out/roadseg.onnx's metadata, then
+    (--border-frames) its border classifier, fitted on the logits the runtime will decide ->
+    their part of the log."""
     log = {"flip_average": bool(args.flip_average)}
+    if args.sky_margin_deg is not None:
+        log["sky_margin_deg"] = args.sky_margin_deg
+    set_metadata(out / "roadseg.onnx", **log)
     if args.border_frames:  # all its frames rendered: no time budget
         log["border"] = fit_border_step(out / "roadseg.onnx", seed=args.border_seed,
                                         frames=args.border_frames, args=args,
@@ -497,6 +500,8 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
         + ([f"--crop {args.crop}"] if args.crop != DEFAULT_CROP else [])
         + ([f"--full-after {args.full_after:g}"] if args.full_after < 1.0 else [])
         + ([] if args.flip_average else ["--no-flip-average"])
+        + ([f"--sky-margin-deg {args.sky_margin_deg:g}"]
+           if args.sky_margin_deg is not None else [])
         + ([f"--border-frames {args.border_frames}"] if args.border_frames else [])
         + ([f"--border-seed {args.border_seed}"]
            if args.border_frames and args.border_seed != args.seed + BORDER_SEED_OFFSET
@@ -1466,6 +1471,18 @@ def _flip_text(result: dict) -> str:
     return "off (`--no-flip-average`)."
 
 
+def _sky_text(result: dict) -> str:
+    margin = result.get("sky_margin_deg")
+    if margin is None:
+        return ("the runtime's default (segmentation.sky_margin_deg): rows above rays rising 10 "
+                "degrees above level are not segmented.")
+    if margin < 0:
+        return ("every row segmented (metadata `sky_margin_deg` -1): the network's coarsest "
+                "stage reads the whole frame, so leaving out the sky changes its output.")
+    return (f"rows above rays rising {margin:g} degrees above level are not segmented "
+            "(metadata `sky_margin_deg`).")
+
+
 def model_card(result: dict) -> str:
     w, h = INPUT_SIZE
     share = result.get("synth_share", seg_data.SYNTH_SHARE)
@@ -1481,6 +1498,7 @@ def model_card(result: dict) -> str:
   same settings are stored in the model's metadata (`roadmap.segmentation`), so
   `OnnxSegmenter()` needs no arguments.
 - **Flip averaging**: {_flip_text(result)}
+- **Sky rows**: {_sky_text(result)}
 - **Network**: RoadSegNet (services/segtrain/net.py): 4x4 stride-2 stem on the full-resolution
   image, depthwise-separable encoder-decoder with stages at 1/4, 1/8, 1/16 (dilated context),
   U-Net skips back to 1/2, logits at 1/2 (upsampled by the runtime);

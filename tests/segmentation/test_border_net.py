@@ -248,32 +248,57 @@ def test_a_training_run_refuses_its_own_seed_for_the_border_classifier(tmp_path,
     assert not any(tmp_path.iterdir())  # nothing rendered, trained or written
 
 
+def _finish_a_run(tmp_path, *flags, flip_average: bool | None = None) -> tuple[Path, dict]:
+    """The end of a training run (`_finish`) of train-seg `flags` on a copy of the packaged
+    model (its metadata `flip_average` set first, if given) -> the model and train_log.json."""
+    import json
+
+    from services.cli import build_parser
+    from services.segtrain.train import _finish, set_metadata
+
+    model = tmp_path / "roadseg.onnx"
+    model.write_bytes(DEFAULT_MODEL.read_bytes())
+    if flip_average is not None:
+        set_metadata(model, flip_average=flip_average)
+    args = build_parser().parse_args(["train-seg", "--out", str(tmp_path), *flags])
+    args.turn_prob, args.synth_share, args.border_seed = 0.2, 0.3, 31
+    result = {"frames": 24, "model_bytes": model.stat().st_size, "params": 26011, "steps": 1,
+              "train_s": 1.0, "class_weights": [1.0] * 7, "onnx_max_abs_diff": 0.0,
+              "onnx_argmax_agreement": 1.0, "val_iou_town": {}, "init": None}
+    assert _finish(args, tmp_path, result, 0.0) == 0
+    return model, json.loads((tmp_path / "train_log.json").read_text())
+
+
 @pytest.mark.parametrize("flag, expected", [([], True), (["--no-flip-average"], False)])
 def test_a_training_run_sets_flip_averaging_before_its_border_classifier(tmp_path, flag, expected):
     """The end of a training run (`_finish`) switches flip averaging on in the export's metadata
     (unless --no-flip-average), before any border fit, and writes it to the log, card and the
     command it reports, so that one command gives the packaged file's settings."""
     pytest.importorskip("onnx")
-    import json
+    from services.segtrain.train import _metadata
 
-    from services.cli import build_parser
-    from services.segtrain.train import _finish, _metadata, set_metadata
-
-    model = tmp_path / "roadseg.onnx"
-    model.write_bytes(DEFAULT_MODEL.read_bytes())
-    set_metadata(model, flip_average=not expected)
-    args = build_parser().parse_args(["train-seg", "--out", str(tmp_path), *flag])
-    args.turn_prob, args.synth_share, args.border_seed = 0.2, 0.3, 31
-    result = {"frames": 24, "model_bytes": model.stat().st_size, "params": 26011, "steps": 1,
-              "train_s": 1.0, "class_weights": [1.0] * 7, "onnx_max_abs_diff": 0.0,
-              "onnx_argmax_agreement": 1.0, "val_iou_town": {}, "init": None}
-    assert _finish(args, tmp_path, result, 0.0) == 0
+    model, log = _finish_a_run(tmp_path, *flag, flip_average=not expected)
     assert _metadata(model)["flip_average"] is expected
-    log = json.loads((tmp_path / "train_log.json").read_text())
     assert log["flip_average"] is expected
     assert ("--no-flip-average" in log["command"]) is not expected
     card = (tmp_path / "MODEL_CARD.md").read_text()
     assert ("**Flip averaging**: on" in card) is expected
+    assert "--sky-margin-deg" not in log["command"] and "sky_margin_deg" not in log
+
+
+def test_a_training_run_writes_the_sky_margin_it_is_given(tmp_path):
+    """--sky-margin-deg -1 (a network that needs every row) lands in the export's metadata, so
+    the runtime's default segments every row of it, and in its log, command and card."""
+    pytest.importorskip("onnx")
+    from common.camera import camera_from_config
+    from common.config import CameraConfig
+    from services.segtrain.train import _metadata
+
+    model, log = _finish_a_run(tmp_path, "--sky-margin-deg", "-1")
+    assert _metadata(model)["sky_margin_deg"] == -1.0
+    assert log["sky_margin_deg"] == -1.0 and "--sky-margin-deg -1" in log["command"]
+    assert "**Sky rows**: every row segmented" in (tmp_path / "MODEL_CARD.md").read_text()
+    assert OnnxSegmenter(model, camera=camera_from_config(CameraConfig())).sky_rows == 0
 
 
 def test_border_only_writes_its_log_beside_the_model_unless_told_otherwise(tmp_path):

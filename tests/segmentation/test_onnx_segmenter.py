@@ -209,21 +209,46 @@ def test_a_fixed_height_model_segments_every_row(tmp_path, caplog):
 
 
 @needs_model
-def test_configured_segmenter_leaves_out_the_cameras_sky():
+def test_configured_segmenter_leaves_out_the_cameras_sky(tmp_path):
     import dataclasses
 
     from common.camera import camera_from_config, sky_rows
-    from common.config import RoadmapConfig
-    from common.segmentation import configured_onnx
+    from common.config import RoadmapConfig, load_config
+    from common.segmentation import DEFAULT_SKY_MARGIN_DEG, configured_onnx
+    from services.segtrain.train import set_metadata
 
     cfg = RoadmapConfig()
     camera = camera_from_config(cfg.camera)
-    seg = configured_onnx(cfg.segmentation, camera=camera)
-    rows = sky_rows(camera, cfg.segmentation.sky_margin_deg)
+    assert cfg.segmentation.sky_margin_deg is None  # each model's own
+    # a model that names no margin (null: as if absent) gets the default one
+    plain = tmp_path / "plain.onnx"
+    plain.write_bytes(DEFAULT_MODEL.read_bytes())
+    set_metadata(plain, sky_margin_deg=None)
+    seg = configured_onnx(dataclasses.replace(cfg.segmentation, model_path=str(plain)),
+                          camera=camera)
+    rows = sky_rows(camera, DEFAULT_SKY_MARGIN_DEG)
+    assert seg.sky_margin_deg == DEFAULT_SKY_MARGIN_DEG
     assert 0 < seg.sky_rows <= rows < seg.sky_rows + 16
-    off = dataclasses.replace(cfg.segmentation, sky_margin_deg=-1.0)
+    # a model that asks for every row gets every row, and one with a lower margin more sky
+    whole, low = tmp_path / "whole.onnx", tmp_path / "low.onnx"
+    for path, margin in ((whole, -1.0), (low, 5.0)):
+        path.write_bytes(plain.read_bytes())
+        set_metadata(path, sky_margin_deg=margin)
+    own = {path: configured_onnx(dataclasses.replace(cfg.segmentation, model_path=str(path)),
+                                 camera=camera) for path in (whole, low)}
+    assert own[whole].sky_rows == 0 and own[whole].sky_margin_deg == -1.0
+    assert own[low].sky_rows > seg.sky_rows
+    # the configuration overrides any model's own margin
+    forced = load_config(sets=[f'segmentation.model_path="{whole}"',
+                               "segmentation.sky_margin_deg=10"]).segmentation
+    assert configured_onnx(forced, camera=camera).sky_rows == seg.sky_rows
+    off = dataclasses.replace(cfg.segmentation, model_path=str(plain), sky_margin_deg=-1.0)
     assert configured_onnx(off, camera=camera).sky_rows == 0
     assert configured_onnx(cfg.segmentation).sky_rows == 0  # no camera: every row
+    with pytest.raises(ConfigError, match="not both"):
+        OnnxSegmenter(plain, camera=camera, sky_fraction=0.2)
+    with pytest.raises(ConfigError, match="camera"):
+        OnnxSegmenter(plain, sky_margin_deg=10.0)
 
 
 @needs_model
