@@ -846,9 +846,9 @@ def configured_onnx(seg, *, min_margin: float = 0.0, camera=None) -> OnnxSegment
     each set their own (vehicle.paint_min_margin, localizer.paint_min_margin). Given the
     `camera` (CameraModel), the rows above rays rising `seg.sky_margin_deg` above level (None:
     the model's own margin, else DEFAULT_SKY_MARGIN_DEG; < 0: none) are not segmented
-    (OnnxSegmenter's camera and sky_margin_deg). The model's learned border
-    classifier runs if it has one, unless `seg.border_net` is off (then its brightness rule),
-    and so does flip averaging if the model asks for it, unless `seg.flip_average` is off."""
+    (OnnxSegmenter's camera and sky_margin_deg). The model's learned border classifier runs
+    if it has one, unless `seg.border_net` is off (then its brightness rule), and so does flip
+    averaging if the model asks for it, unless `seg.flip_average` is off."""
     return get_segmenter("onnx", model_path=seg.model_path,
                          intra_op_threads=seg.intra_op_threads, min_margin=min_margin,
                          camera=camera,
