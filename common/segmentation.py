@@ -16,7 +16,6 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from common import camera as cameras
-from common.camera import CameraModel
 from common.classes import NUM_CLASSES, Cls
 from common.errors import ConfigError
 
@@ -156,7 +155,7 @@ class OnnxSegmenter(Segmenter):
         border_net: dict | bool | None = None,
         min_margin: float = 0.0,
         sky_fraction: float = 0.0,
-        camera: CameraModel | None = None,
+        camera: cameras.CameraModel | None = None,
         sky_margin_deg: float | None = None,
         flip_average: bool | None = None,
         name: str | None = None,

@@ -18,7 +18,13 @@ import numpy as np
 
 from common.classes import MARKINGS, NAMES, NUM_CLASSES, Cls
 from common.errors import ConfigError
-from common.segmentation import META_KEY, OnnxSegmenter, refine_paint_borders, session_metadata
+from common.segmentation import (
+    DEFAULT_SKY_MARGIN_DEG,
+    META_KEY,
+    OnnxSegmenter,
+    refine_paint_borders,
+    session_metadata,
+)
 from services.segtrain import data as seg_data
 from services.segtrain.archs import ARCHS
 from services.segtrain.evaluate import IouAccumulator, mean_paint_iou, segmenter_iou
@@ -1474,11 +1480,11 @@ def _flip_text(result: dict) -> str:
 def _sky_text(result: dict) -> str:
     margin = result.get("sky_margin_deg")
     if margin is None:
-        return ("the runtime's default (segmentation.sky_margin_deg): rows above rays rising 10 "
-                "degrees above level are not segmented.")
+        return ("the runtime's default (segmentation.sky_margin_deg): rows above rays rising "
+                f"{DEFAULT_SKY_MARGIN_DEG:g} degrees above level are not segmented.")
     if margin < 0:
-        return ("every row segmented (metadata `sky_margin_deg` -1): the network's coarsest "
-                "stage reads the whole frame, so leaving out the sky changes its output.")
+        return (f"every row segmented (metadata `sky_margin_deg` {margin:g}): the network's "
+                "coarsest stage reads the whole frame, so leaving out the sky changes its output.")
     return (f"rows above rays rising {margin:g} degrees above level are not segmented "
             "(metadata `sky_margin_deg`).")
 

@@ -1,6 +1,5 @@
 """Paint borders re-decided on the image (refine_paint_borders): runtime and calibration."""
 
-
 import numpy as np
 import pytest
 

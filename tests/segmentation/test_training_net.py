@@ -1,7 +1,6 @@
 """RoadSegNet's row embedding, its half-resolution export and fine-tuning from a saved run
 (needs the optional torch extra: `pip install .[train]`)."""
 
-
 import numpy as np
 import pytest
 
