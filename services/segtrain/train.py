@@ -298,7 +298,7 @@ def _train_soup(args, out: Path, t_start: float) -> int:
                                                "batch", "init", "arch", "iou_loss_weight",
                                                "hard_pixels", "mirror_consistency", "average_init",
                                                "distill", "teacher", "bf16", "crop_hw",
-                                               "full_after")},
+                                               "full_after", "frozen_norms")},
               **exported}
     return _finish(args, out, result, t_start)
 
@@ -688,7 +688,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
         "iou_loss_weight": iou_loss, "hard_pixels": hard_pixels, "arch": arch,
         "mirror_consistency": mirror, "ema": ema, "average_init": average_init,
         "distill": distill, "teacher": teacher, "bf16": bf16, "crop_hw": list(crop_hw),
-        "full_after": full_after,
+        "full_after": full_after, "frozen_norms": frozen_norms,
     }
 
 
@@ -1649,5 +1649,8 @@ def _average_init_text(result: dict) -> str:
 def _init_text(result: dict) -> str:
     if not result.get("init"):
         return ""
-    return (f",\n  fine-tuned from `{result['init']}` (its folded batch norms kept frozen; see\n"
+    # an export's folded norms stay frozen; a roadseg.pt's train on unless its run froze them
+    norms = ("its folded batch norms kept frozen" if result.get("frozen_norms", True)
+             else "its batch norms training on from its statistics")
+    return (f",\n  fine-tuned from `{result['init']}` ({norms}; see\n"
             "  'Reproducing it' for the model it started from)")

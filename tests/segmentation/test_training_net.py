@@ -98,6 +98,10 @@ def test_fine_tuning_starts_from_a_saved_run_of_the_same_architecture(tmp_path):
     # a run that fine-tuned an export kept its folded norms frozen: so does its continuation
     torch.save({"arch": saved.arch, "state": saved.state_dict(), "frozen_norms": True}, path)
     assert train._load_init(model, str(path)) is True
+    # and the run's card says which it was
+    assert "norms kept frozen" in train._init_text({"init": "a.onnx", "frozen_norms": True})
+    assert "norms training on" in train._init_text({"init": "a.pt", "frozen_norms": False})
+    assert train._init_text({"init": None}) == ""
 
 
 def test_subpixel_export_gives_full_resolution_labels_and_starts_as_its_init(tmp_path, rng):
