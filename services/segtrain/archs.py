@@ -25,8 +25,9 @@ ARCHS["p16"] = {**ARCHS["s"], "widths": [16, 16, 48, 64]}
 # A capacity probe, not a product size: 16x "s"'s parameters (410 k), about 3x its 1/2-resolution
 # work. It asks whether a larger network learns more from the same towns (stop 47's GPU run).
 ARCHS["xl"] = {"widths": [32, 48, 128, 192], "depths": [2, 4, 6], "rows": False}
-# Between p16 and xl, for the next GPU run (not trained yet): xl's extra capacity where it is
-# cheap, at 1/8 and 1/16, on p16's 1/2 and 1/4 widths. One onnxruntime thread at 640x312 on a
+# Between p16 and xl: xl's extra capacity where it is cheap, at 1/8 and 1/16, on p16's 1/2 and
+# 1/4 widths. m64 is the packaged model's (run KM64, common/models/MODEL_CARD.md); d192 was
+# trained once (HISTORY.md, 2026-11-28 early morning). One onnxruntime thread at 640x312 on a
 # 2-core AVX2 EPYC, exported as the product exports (the least of 40 passes, 2026-11-27): s
 # 16.4 ms, m64 15.5 ms (112 k parameters), d192 21.8 ms (364 k), xl 51.3 ms.
 ARCHS["m64"] = {"widths": [16, 16, 64, 128], "depths": [1, 2, 4], "rows": False}

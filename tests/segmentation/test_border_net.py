@@ -20,7 +20,7 @@ from common.segmentation import (
     paint_border_pixels,
     unsure_paint_border,
 )
-from tests.segmentation.test_refine import _road_with_lines
+from tests.segmentation.test_refine import _town_frame
 
 ROAD_GREY, PAINT_GREY = 80, 200
 PATCH = 25  # 5x5
@@ -167,7 +167,7 @@ needs_model = pytest.mark.skipif(not DEFAULT_MODEL.is_file(), reason="no package
 
 @needs_model
 def test_the_packaged_classifier_runs_by_default_and_changes_only_border_pixels():
-    image = _road_with_lines()
+    image = _town_frame()
     learned = OnnxSegmenter()
     assert learned.border_net is not None  # the default: the model's own classifier
     assert OnnxSegmenter(border_net=False).border_net is None  # its brightness rule
