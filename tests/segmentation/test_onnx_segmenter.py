@@ -120,11 +120,9 @@ def test_unsure_paint_becomes_unknown_and_confident_paint_stays():
 
 @needs_model
 def test_min_margin_drops_exactly_the_marking_pixels_the_model_is_unsure_of():
-    from services.segtrain.evaluate import render_heldout
+    from tests.segmentation.test_refine import _town_frame
 
-    # a town frame as rendered: worn paint, curbs and shade give the network things to doubt
-    # (a line drawing is unlike any training frame, and the m64 network finds little paint there)
-    (image, _), = render_heldout("town:0.6", frames=1, seed=3)[0]
+    image = _town_frame()  # worn paint, curbs and shade: things for the network to doubt
     plain = OnnxSegmenter(refine={}, border_net=False).segment(image)
     gated_seg = OnnxSegmenter(refine={}, border_net=False, min_margin=2.0)
     gated = gated_seg.segment(image)
@@ -170,9 +168,9 @@ def test_upsampled_argmax_equals_the_resize_then_argmax(rng):
 
 @needs_model
 def test_sky_rows_are_labelled_none_and_the_network_sees_only_the_rows_below():
-    from services.segtrain.evaluate import render_heldout
+    from tests.segmentation.test_refine import _town_frame
 
-    (image, _), = render_heldout("town:0.6", frames=1, seed=3)[0]  # a town frame, as rendered
+    image = _town_frame()
     full = OnnxSegmenter(refine={}, border_net=False)
     # 72 rows, in steps of 16: 64
     sky = OnnxSegmenter(refine={}, border_net=False, sky_fraction=0.2)
