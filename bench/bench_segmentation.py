@@ -23,7 +23,8 @@ product runs it: the rows above rays rising the model's sky margin above level (
 p50/p95 ms of `segment_model_size` (resize, network, upsampling, argmax, border refinement) at
 the model's input size on one core (one onnxruntime thread, OpenCV and the border
 classifier's BLAS held to one thread), and of the whole `segment()` call at full
-size, on the held-out route frames themselves (up to TIMED_FRAMES per world, in turn): until
+size, on the held-out route frames themselves (up to TIMED_FRAMES per world, in turn), with
+the p50 of its parts timed apart (`parts_ms_p50`: network, labels, borders): until
 2026-11-25 it timed random noise, which has almost no paint borders to upsample and refine
 and so read 12 ms where road frames take 14.5 ms. `paint_gate`: precision and recall in the
 ROI of the model as the mapping vehicles run it (paint it is unsure of left unknown:
@@ -143,6 +144,7 @@ def speed(seg, frames: list, *, repeats: int) -> dict:
 def _speed(seg, frames: list, *, repeats: int) -> dict:
     w, h = seg.input_size
     model_ms, model_cpu_ms, full_ms = [], [], []
+    parts = {"network": [], "labels": [], "borders": []}
     for i in range(repeats + 5):
         frame = frames[i % len(frames)]
         small = frame if frame.shape[:2] == (h, w) else cv2.resize(frame, (w, h))
@@ -155,6 +157,8 @@ def _speed(seg, frames: list, *, repeats: int) -> dict:
             model_ms.append((t1 - t0) * 1e3)
             model_cpu_ms.append((c1 - c0) * 1e3)
             full_ms.append((t2 - t1) * 1e3)
+            for name, ms in _parts_ms(seg, small).items():
+                parts[name].append(ms)
     pct = lambda v, q: round(float(np.percentile(v, q)), 2)  # noqa: E731
     return {
         "input_size": list(seg.input_size), "threads": 1, "load_avg_1min": os.getloadavg()[0],
@@ -165,7 +169,25 @@ def _speed(seg, frames: list, *, repeats: int) -> dict:
         # CPU time of the (single) inference thread: robust to other processes on the machine
         "cpu_ms_p50": pct(model_cpu_ms, 50), "cpu_ms_p95": pct(model_cpu_ms, 95),
         "segment_640x360_ms_p50": pct(full_ms, 50), "segment_640x360_ms_p95": pct(full_ms, 95),
+        # where segment_model_size's time goes, timed apart on the same frames: network_labels
+        # (`labels`: the input, the network's passes, the upsampled argmax) then
+        # refined_borders (`borders`: the border classifier or the brightness rule), and the
+        # network's passes alone (`network`: both, and their average, with flip averaging)
+        "parts_ms_p50": {name: pct(v, 50) for name, v in parts.items()},
     }
+
+
+def _parts_ms(seg, small: np.ndarray) -> dict:
+    """ms of the parts of one `segment_model_size(small)` call, each timed on its own."""
+    x = seg.preprocess(small)
+    t0 = time.perf_counter()
+    seg.run_network(x)
+    t1 = time.perf_counter()
+    small, labels, score_at = seg.network_labels(small)
+    t2 = time.perf_counter()
+    seg.refined_borders(small, small, labels, score_at)
+    t3 = time.perf_counter()
+    return {"network": (t1 - t0) * 1e3, "labels": (t2 - t1) * 1e3, "borders": (t3 - t2) * 1e3}
 
 
 def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES,

@@ -300,7 +300,7 @@ class OnnxSegmenter(Segmenter):
         small = image_rgb  # resized once, for the network and the refinement
         if small.shape[:2] != (h, w):
             small = cv2.resize(small, (w, h), interpolation=cv2.INTER_AREA)
-        outs = self._run(self.preprocess(small))
+        outs = self.run_network(self.preprocess(small))
         out_w, out_h = out_size or (w, h)
         sky = round(self.sky_rows * out_h / h)  # rows labelled 0, at the output size
         band = (out_w, out_h - sky)  # (W, H) of the labels the network gives
@@ -341,9 +341,10 @@ class OnnxSegmenter(Segmenter):
                 score_at = partial(_rows_below, score_at, sky)
         return small, labels.astype(np.uint8), score_at
 
-    def _run(self, x: np.ndarray) -> list[np.ndarray]:
-        """The outputs of the heads in `priority` for model input `x` (1, 3, h, w); with
-        `flip_average`, the mean of those of `x` and of its mirror image (mirrored back)."""
+    def run_network(self, x: np.ndarray) -> list[np.ndarray]:
+        """The outputs of the heads in `priority` for model input `x` (1, 3, h, w), as
+        `preprocess` gives it; with `flip_average`, the mean of those of `x` and of its mirror
+        image (mirrored back): the network's part of network_labels."""
         outs = self._session.run(self.priority, {self._input_name: x})
         if not self.flip_average:
             return outs

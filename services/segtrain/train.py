@@ -1372,7 +1372,7 @@ def _narrow_checked(wide, model, init) -> None:
                           "train an architecture as wide (--arch)")
 
 
-def export_onnx(model, path: Path, *, seed: int) -> None:
+def export_onnx(model, path: Path, *, seed: int, block: int = 16) -> None:
     """Input (1, 3, H, W) float RGB / 255 (W fixed, H dynamic, nominally INPUT_SIZE's);
     output `logits` (1, 6, H/2, W/2), which
     OnnxSegmenter upsamples bilinearly to (H, W) before its argmax (a sub-pixel head: (1, 6 x 4,
@@ -1381,7 +1381,8 @@ def export_onnx(model, path: Path, *, seed: int) -> None:
     (net.aligned) and its decoder blocks without their concatenations
     (onnx_graph.split_concatenations): the same function, 2.4 ms a frame faster in
     onnxruntime (9.5 -> 7.1 ms, one thread, 640x312); its metadata's `arch` gives the padded
-    widths."""
+    widths. `block`: the alignment (8 suits the blocked convolutions of AVX2 alone; only
+    bench/bench_archs.py asks for it)."""
     import onnx
     import torch
 
@@ -1390,7 +1391,7 @@ def export_onnx(model, path: Path, *, seed: int) -> None:
 
     w, h = INPUT_SIZE
     model.half_res_logits = True  # the runtime upsamples (OnnxSegmenter.segment_model_size)
-    model = aligned(model)
+    model = aligned(model, block)
     dummy = torch.rand(1, 3, h, w)
     # the height is dynamic, so the runtime can leave out the rows above the horizon
     # (OnnxSegmenter's sky_fraction; it fixes the height it runs at when it loads the file)

@@ -128,7 +128,7 @@ def test_min_margin_drops_exactly_the_marking_pixels_the_model_is_unsure_of():
     gated = gated_seg.segment(image)
     # the margin from the network's logits (flip-averaged, as the model asks), upsampled as
     # the runtime does
-    (logits,) = gated_seg._run(gated_seg.preprocess(image))
+    (logits,) = gated_seg.run_network(gated_seg.preprocess(image))
     up = np.stack([cv2.resize(c, (640, 360), interpolation=cv2.INTER_LINEAR) for c in logits[0]])
     top2 = np.sort(up, axis=0)[-2:]
     unsure = (plain >= Cls.LANE_LINE) & (top2[1] - top2[0] < 2.0)
@@ -258,9 +258,9 @@ def test_flip_averaging_mirrors_the_mirror_images_scores_back(rng):
     flip = OnnxSegmenter(flip_average=True)
     image = rng.integers(0, 255, (360, 640, 3), dtype=np.uint8)
     x, mirrored = flip.preprocess(image), flip.preprocess(np.ascontiguousarray(image[:, ::-1]))
-    (scores,), (of_mirror,) = flip._run(x), flip._run(mirrored)
+    (scores,), (of_mirror,) = flip.run_network(x), flip.run_network(mirrored)
     np.testing.assert_array_equal(of_mirror, scores[..., ::-1])
-    (a,), (b,) = plain._run(x), plain._run(mirrored)
+    (a,), (b,) = plain.run_network(x), plain.run_network(mirrored)
     np.testing.assert_allclose(scores, 0.5 * (a + b[..., ::-1]), atol=1e-6)
     assert not np.allclose(a, scores, atol=1e-3)  # the network itself is not symmetric
 

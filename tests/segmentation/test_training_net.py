@@ -195,6 +195,24 @@ def test_an_export_pads_its_channels_to_16_and_loads_into_either_width(tmp_path,
         train._load_init(RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]), str(used_path))
 
 
+def test_an_export_aligned_to_8_channels_pads_less_and_computes_the_same(tmp_path, rng):
+    """block=8 (AVX2's blocked convolutions; bench/bench_archs.py) rounds `s` [12, 20, 40, 64]
+    up to [16, 24, 40, 64], not to 16's [16, 32, 48, 64], and the file computes what `s` does."""
+    import onnxruntime as ort
+
+    from services.segtrain.net import onnx_widths
+
+    small = _random_model(5)
+    path = tmp_path / "s8.onnx"
+    train.export_onnx(small, path, seed=5, block=8)
+    assert onnx_widths(path) == [16, 24, 40, 64]
+    x = torch.from_numpy(rng.random((1, 3, 96, 640), np.float32))
+    got = ort.InferenceSession(str(path)).run(None, {"image": x.numpy()})[0]
+    small.half_res_logits = True
+    with torch.no_grad():
+        assert np.abs(small(x).numpy() - got).max() < 1e-4
+
+
 def test_an_export_has_a_dynamic_height_and_a_re_export_keeps_the_model(tmp_path, rng):
     """export_onnx leaves the input height dynamic (OnnxSegmenter's sky rows); --reexport
     writes an older file again with the same weights and metadata."""
