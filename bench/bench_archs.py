@@ -41,16 +41,18 @@ DEFAULT_ARCHS = ("p16", "s", "m64", "d192")
 
 
 def parse_widths(text: str) -> dict:
-    """'8,8,64,128:1,2,4' -> an arch spec {widths, depths, rows: False}."""
+    """'8,8,64,128:1,2,4' -> an arch spec {widths, depths, rows: False}; ValueError if the
+    text is not four widths and three depths."""
+    bad = ValueError(f"--widths {text!r}: expected four widths and three depths, "
+                     "as 8,8,64,128:1,2,4")
     try:
         widths, depths = text.split(":")
         spec = {"widths": [int(v) for v in widths.split(",")],
                 "depths": [int(v) for v in depths.split(",")], "rows": False}
     except ValueError:
-        raise SystemExit(f"--widths {text!r}: expected four widths and three depths, "
-                         "as 8,8,64,128:1,2,4") from None
+        raise bad from None
     if len(spec["widths"]) != 4 or len(spec["depths"]) != 3:
-        raise SystemExit(f"--widths {text!r}: expected four widths and three depths")
+        raise bad
     return spec
 
 
@@ -134,7 +136,10 @@ def main(argv=None) -> int:
     if unknown:
         ap.error(f"unknown arch(s) {unknown}; known: {sorted(ARCHS)}")
     for text in args.widths:
-        parse_widths(text)
+        try:
+            parse_widths(text)
+        except ValueError as exc:
+            ap.error(str(exc))
     report = run(archs, args.widths, block=args.block, rounds=args.rounds, passes=args.passes)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
