@@ -62,10 +62,11 @@ from services.segtrain.evaluate import (  # noqa: E402
     bootstrap_interval,
     render_heldout,
 )
+from services.sim.worlds import shared_data_dir  # noqa: E402
 
 logger = logging.getLogger("bench.segmentation")
 
-SHARED = REPO.parent / "shared" / "data"
+SHARED = shared_data_dir()  # $ROADMAP_SHARED_DATA, else ../shared/data
 TARGETS = {"lane_line": 0.80, "stop_line": 0.75, "crosswalk": 0.75, "ground_sign": 0.60}
 # Frames per world. The first 100 are the 100 this benchmark rendered until 2026-11-24 (the same
 # seeded sequence). 100 were too few for the Karlsruhe world: its next 100 frames moved the

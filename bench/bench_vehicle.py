@@ -32,12 +32,13 @@ from common.segmentation import (  # noqa: E402
     configured_onnx,
     get_segmenter,
 )
+from services.sim.worlds import shared_data_dir  # noqa: E402
 from services.vehicle.mapper import VehicleMapper  # noqa: E402
 from services.vehicle.node import StageTimer, map_log, pose_errors  # noqa: E402
 from tests.vehicle.synthetic import LabelRenderer, centreline, drive, mapping_camera, road_world  # noqa: E402
 
 logger = logging.getLogger("bench.vehicle")
-SHARED = Path(os.environ.get("ROADMAP_SHARED_DATA", REPO.parent / "shared" / "data"))
+SHARED = shared_data_dir()  # $ROADMAP_SHARED_DATA, else ../shared/data
 
 
 class MemoryLog:

@@ -1,7 +1,6 @@
 """Shared fixtures: seeded rng, the shared data folder, a real local Zenoh router process; and
 how tests start our own processes (`roadmap ARGS` is `python -m services.cli ARGS`)."""
 
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -9,8 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from services.sim.worlds import shared_data_dir
+
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = Path(os.environ.get("ROADMAP_SHARED_DATA", REPO.parent / "shared" / "data"))
+SHARED_DATA = shared_data_dir()  # $ROADMAP_SHARED_DATA, else ../shared/data
 
 
 def _argv(module: str, args) -> list[str]:

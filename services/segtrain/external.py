@@ -154,8 +154,11 @@ def main(argv=None) -> int:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True)
-    shared = Path(__file__).resolve().parents[3] / "shared" / "data"
-    parser.add_argument("--data", default=str(shared))
+    from services.sim.worlds import shared_data_dir
+
+    parser.add_argument("--data", default=str(shared_data_dir()),
+                        help="the shared data folder (default: $ROADMAP_SHARED_DATA, "
+                        "else ../shared/data)")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args(argv)
     configure_logging("INFO")
