@@ -3,10 +3,11 @@ architecture (`roadmap train-seg --arch`, services/segtrain/archs.py) and of any
 exported as the product exports them (`export_onnx`: channels padded to a multiple of the
 alignment block, concatenations split) and run as the product runs them (OnnxSegmenter's
 onnxruntime session of one thread, the input height fixed at the default camera's rows below
-the sky cut). Writes JSON. Which network to train for a speed target is a question about the
-machine it must run on: the passes are timed alternated, round by round, so that the ratios
-between sizes, measured in one run, are the figures to compare; absolute times move with the
-machine and its load (the least of the passes is the quietest moment's).
+the sky cut: the packaged model's own sky margin unless `--sky-margin-deg` is given). Writes
+JSON. Which network to train for a speed target is a question about the machine it must run
+on: the passes are timed alternated, round by round, so that the ratios between sizes,
+measured in one run, are the figures to compare; absolute times move with the machine and its
+load (the least of the passes is the quietest moment's).
 
 The weights are random (a pass's arithmetic does not depend on them). onnxruntime's blocked
 (NCHWc) convolutions work in blocks of 16 channels on AVX-512 and of 8 on AVX2, so
@@ -14,7 +15,7 @@ The weights are random (a pass's arithmetic does not depend on them). onnxruntim
 use 16). Needs the optional training extra (`pip install -e '.[train]'`).
 
     python bench/bench_archs.py --out DIR [--archs m64,p16] [--widths 8,8,64,128:1,2,4]
-        [--block 16] [--rounds 15] [--passes 8]
+        [--block 16] [--rounds 15] [--passes 8] [--sky-margin-deg D]
 """
 
 import argparse
@@ -92,18 +93,22 @@ def time_passes(segmenters: dict, *, rounds: int, passes: int) -> dict:
     return ms
 
 
-def run(archs: list[str], widths: list[str], *, block: int, rounds: int, passes: int) -> dict:
+def run(archs: list[str], widths: list[str], *, block: int, rounds: int, passes: int,
+        sky_margin_deg: float | None = None) -> dict:
     from common.segmentation import OnnxSegmenter
 
     specs = {name: ARCHS[name] for name in archs}
     specs.update({text: parse_widths(text) for text in widths})
     camera = camera_from_config(CameraConfig())
+    if sky_margin_deg is None:  # the rows the packaged model runs on
+        sky_margin_deg = OnnxSegmenter(camera=camera).sky_margin_deg
     entries, segmenters = {}, {}
     with tempfile.TemporaryDirectory() as tmp:
         for name, spec in specs.items():
             path = Path(tmp) / f"{len(entries)}.onnx"
             params = export(spec, path, block)
-            seg = OnnxSegmenter(path, camera=camera, flip_average=False, border_net=False)
+            seg = OnnxSegmenter(path, camera=camera, sky_margin_deg=sky_margin_deg,
+                                flip_average=False, border_net=False)
             entries[name] = {"spec": spec, "parameters": params,
                              "input_rows": seg.input_size[1] - seg.sky_rows}
             segmenters[name] = seg
@@ -115,6 +120,7 @@ def run(archs: list[str], widths: list[str], *, block: int, rounds: int, passes:
     import onnxruntime
 
     return {"block": block, "rounds": rounds, "passes_per_round": passes, "threads": 1,
+            "sky_margin_deg": sky_margin_deg,
             "load_avg_1min": os.getloadavg()[0], "python": platform.python_version(),
             "onnxruntime": onnxruntime.__version__, **cpu_description(), "archs": entries}
 
@@ -130,6 +136,9 @@ def main(argv=None) -> int:
                     help="channel alignment of the exports (the product's: 16)")
     ap.add_argument("--rounds", type=int, default=15)
     ap.add_argument("--passes", type=int, default=8, help="passes of each size per round")
+    ap.add_argument("--sky-margin-deg", type=float, default=None,
+                    help="rows above rays rising this much are left out (default: the "
+                         "packaged model's own margin; -1: every row)")
     args = ap.parse_args(argv)
     archs = [a for a in args.archs.split(",") if a]
     unknown = [a for a in archs if a not in ARCHS]
@@ -140,7 +149,8 @@ def main(argv=None) -> int:
             parse_widths(text)
         except ValueError as exc:
             ap.error(str(exc))
-    report = run(archs, args.widths, block=args.block, rounds=args.rounds, passes=args.passes)
+    report = run(archs, args.widths, block=args.block, rounds=args.rounds, passes=args.passes,
+                 sky_margin_deg=args.sky_margin_deg)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "archs.json").write_text(json.dumps(report, indent=2))
