@@ -194,11 +194,11 @@ def test_sky_rows_are_labelled_none_and_the_network_sees_only_the_rows_below():
 
 
 @needs_model
-def test_the_packaged_models_own_sky_cut_leaves_every_row_of_climbing_road():
-    """The packaged model names its own sky margin (metadata `sky_margin_deg`): with the
-    default camera it leaves out sky rows (its time) but only rows above rays rising 3 deg,
-    so road that climbs towards the horizon by up to that is still segmented, and so is every
-    row of level ground."""
+def test_the_packaged_models_sky_cut_leaves_every_row_of_climbing_road():
+    """With the default camera the packaged model's sky cut (its own margin, else the
+    runtime's default) leaves out sky rows (its time) but only rows above rays rising 3 deg
+    or more, so road that climbs towards the horizon by up to that is still segmented, and so
+    is every row of level ground."""
     from common.camera import camera_from_config, sky_rows
     from common.config import CameraConfig
 
