@@ -39,6 +39,13 @@ SKY_ROW_STEP = 16
 DEFAULT_SKY_MARGIN_DEG = 10.0
 
 
+def sky_rows_of(sky_fraction: float, height: int) -> int:
+    """The top rows OnnxSegmenter leaves out of a `height`-row input for a sky share
+    `sky_fraction` (camera.sky_fraction): whole steps of SKY_ROW_STEP (a share of whole rows
+    comes back as those rows, not one fewer by rounding: 208 / 360 * 360 < 208)."""
+    return int(sky_fraction * height + 1e-6) // SKY_ROW_STEP * SKY_ROW_STEP
+
+
 class Segmenter:
     name = "segmenter"
 
@@ -187,7 +194,7 @@ class OnnxSegmenter(Segmenter):
         if not 0.0 <= sky_fraction < 1.0:
             raise ConfigError(f"sky_fraction must be in [0, 1), got {sky_fraction}")
         h = self.input_size[1]
-        self.sky_rows = int(sky_fraction * h) // SKY_ROW_STEP * SKY_ROW_STEP  # at input size
+        self.sky_rows = sky_rows_of(sky_fraction, h)  # at input size
         height = inp.shape[2]
         if isinstance(height, str):  # dynamic: a second session with the height fixed, so
             # onnxruntime plans the graph as a static one

@@ -192,6 +192,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "the rows above rays rising D degrees above level (-1: none, for a "
                         "network whose coarsest stage reads the whole frame, as m64's does); "
                         "default: not written (the runtime's default, 10)")
+    p.add_argument("--sky-cut-training", action="store_true",
+                   help="train (and set the logit offsets) on frames without the top rows "
+                        "that --sky-margin-deg leaves out for the default camera, as the "
+                        "runtime will segment them (the paint-border settings and the border "
+                        "classifier are still fitted on whole frames)")
     p.add_argument("--border-seed", type=int, default=None,
                    help="the towns of the border classifier's frames (default: --seed + 31)")
     p.add_argument("--reexport", default=None, metavar="MODEL",

@@ -38,9 +38,10 @@ PER_FRAME = 3000  # border pixels drawn per frame (a road frame has 1-11 k)
 CHECK_SHARE = 0.1  # the last frames, on which the classifier must beat the brightness rule
 
 
-def raw_segmenter(model_path, threads: int = 2) -> OnnxSegmenter:
+def raw_segmenter(model_path, threads: int = 2, sky_fraction: float = 0.0) -> OnnxSegmenter:
     """The model as the runtime runs it, without any border refinement."""
-    return OnnxSegmenter(model_path, intra_op_threads=threads, refine={}, border_net={})
+    return OnnxSegmenter(model_path, intra_op_threads=threads, refine={}, border_net={},
+                         sky_fraction=sky_fraction)
 
 
 def border_samples(seg: OnnxSegmenter, frames, labels, rng, per_frame: int = PER_FRAME,
@@ -114,21 +115,26 @@ def paint_iou(seg: OnnxSegmenter, frames, labels) -> dict:
     return {**ious, "paint": mean_paint_iou(ious)}
 
 
-def calibrate_border_net(model_path, frames, labels, *, seed: int = 0) -> dict:
+def calibrate_border_net(model_path, frames, labels, *, seed: int = 0,
+                         sky_fraction: float = 0.0) -> dict:
     """Fit BorderNet on the first (1 - CHECK_SHARE) of the town frames, check it on the rest
-    against the model's own border rule -> {"border_net": spec or None (it did not beat the
-    rule), "check": {"rule": ious, "border_net": ious}, "samples": n, "fit_s": s}."""
+    against the model's own border rule, each segmented without the top `sky_fraction` of its
+    rows as the runtime leaves them out (OnnxSegmenter) -> {"border_net": spec or None (it did
+    not beat the rule), "check": {"rule": ious, "border_net": ious}, "samples": n, "fit_s": s}."""
     t0 = time.perf_counter()
     n_check = max(int(len(frames) * CHECK_SHARE), 1)
     fit_frames, fit_labels = frames[:-n_check], labels[:-n_check]
     check_frames, check_labels = frames[-n_check:], labels[-n_check:]
-    x, y = border_samples(raw_segmenter(model_path), fit_frames, fit_labels,
+    x, y = border_samples(raw_segmenter(model_path, sky_fraction=sky_fraction), fit_frames,
+                          fit_labels,
                           np.random.default_rng(seed))
     logger.info("%d border samples from %d frames (classes %s)", len(x), len(fit_frames),
                 np.bincount(y, minlength=NUM_CLASSES).tolist())
     spec = fit_border_net(x, y, seed=seed)
-    rule = OnnxSegmenter(model_path, intra_op_threads=2, border_net={})
-    learned = OnnxSegmenter(model_path, intra_op_threads=2, border_net=spec)
+    rule = OnnxSegmenter(model_path, intra_op_threads=2, border_net={},
+                         sky_fraction=sky_fraction)
+    learned = OnnxSegmenter(model_path, intra_op_threads=2, border_net=spec,
+                            sky_fraction=sky_fraction)
     check = {"rule": paint_iou(rule, check_frames, check_labels),
              "border_net": paint_iou(learned, check_frames, check_labels)}
     better = check["border_net"]["paint"] > check["rule"]["paint"]

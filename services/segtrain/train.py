@@ -69,6 +69,9 @@ def train_command(args, cfg) -> int:
     check_distill(args.distill, args.init, not args.stream, args.teacher,
                   crop_size(args.crop, INPUT_SIZE[::-1]))  # the frames' size, before rendering
     check_full_after(args.full_after, args.crop)
+    if training_sky_rows(args) and (args.prune or args.border_only):
+        raise ConfigError("--sky-cut-training is a training run's (or its --export-only's): "
+                          "leave it out of --prune and --border-only")
     if args.no_cache and args.cache_dir:
         raise ConfigError("--cache-dir with --no-cache: leave one out")
     for weights in export_weights(args):
@@ -234,7 +237,40 @@ def run_options(args, frame_hw) -> dict:
             "mirror": args.mirror_consistency, "ema": args.ema,
             "average_init": args.average_init, "distill": args.distill,
             "teacher": args.teacher, "bf16": args.bf16,
-            "crop_hw": crop_size(args.crop, frame_hw), "full_after": args.full_after}
+            "crop_hw": crop_size(args.crop, frame_hw), "full_after": args.full_after,
+            "top_rows": training_sky_rows(args)}
+
+
+def training_sky_rows(args) -> int:
+    """--sky-cut-training: the top rows of INPUT_SIZE frames that --sky-margin-deg leaves out
+    for the default camera (as OnnxSegmenter computes them), which the run then trains without;
+    else 0."""
+    if not getattr(args, "sky_cut_training", False):
+        return 0
+    if args.sky_margin_deg is None or args.sky_margin_deg < 0:
+        raise ConfigError("--sky-cut-training trains without the rows a sky margin leaves out: "
+                          "give --sky-margin-deg D (D >= 0)")
+    from common.camera import camera_from_config, sky_fraction
+    from common.config import CameraConfig
+    from common.segmentation import sky_rows_of
+
+    camera = camera_from_config(CameraConfig())
+    if (camera.width, camera.height) != INPUT_SIZE:
+        raise ConfigError(f"--sky-cut-training: the default camera is {camera.width}x"
+                          f"{camera.height}, the training frames {INPUT_SIZE[0]}x{INPUT_SIZE[1]}")
+    return sky_rows_of(sky_fraction(camera, args.sky_margin_deg), INPUT_SIZE[1])
+
+
+def check_top_rows(top_rows: int, frame_hw, crop_hw) -> None:
+    """Rows left out at the top of every training frame (H, W) `frame_hw`: even (a teacher's
+    1/2-resolution logits are cut with them), leaving some, and room for the crops (whole
+    frames are whole frames without those rows)."""
+    if top_rows < 0 or top_rows % 2 or top_rows >= frame_hw[0]:
+        raise ConfigError(f"top rows {top_rows}: an even count >= 0 under the frames' "
+                          f"{frame_hw[0]}")
+    if tuple(crop_hw) != tuple(frame_hw) and crop_hw[0] > frame_hw[0] - top_rows:
+        raise ConfigError(f"crops of {crop_hw[0]} rows do not fit frames of {frame_hw[0]} "
+                          f"rows without their top {top_rows}")
 
 
 def _render_budget_s(args) -> float:
@@ -289,7 +325,8 @@ def _train_soup(args, out: Path, t_start: float) -> int:
     model.load_state_dict(average_states(states))
     x_val, y_val, frames_val, labels_val = _calibration_first(held)
     exported = calibrate_and_export(model, x_val, y_val, frames_val, labels_val, out,
-                                    seed=args.seed, frozen_norms=frozen_norms)
+                                    seed=args.seed, frozen_norms=frozen_norms,
+                                    sky_fraction=training_sky_rows(args) / INPUT_SIZE[1])
     result = {"soup": runs, "steps": sum(r["steps"] for r in runs),
               "frames": sum(r["frames"] for r in runs),
               "train_s": round(sum(r["train_s"] for r in runs), 1),
@@ -298,7 +335,7 @@ def _train_soup(args, out: Path, t_start: float) -> int:
                                                "batch", "init", "arch", "iou_loss_weight",
                                                "hard_pixels", "mirror_consistency", "average_init",
                                                "distill", "teacher", "bf16", "crop_hw",
-                                               "full_after", "frozen_norms")},
+                                               "full_after", "frozen_norms", "top_rows")},
               **exported}
     return _finish(args, out, result, t_start)
 
@@ -344,7 +381,9 @@ def _export_only(args, out: Path, frames: np.ndarray, labels: np.ndarray,
     --out/roadseg.onnx; the log goes to --out/export_log.json. With the run's --seed and
     --frames (and --soup DOSE for a run on that dose's towns), the held-out frames are the
     run's: an --ema run's two weights, compared alike. --export-only PT1,PT2,...: the runs'
-    weights averaged name by name first (a soup of finished runs of one architecture)."""
+    weights averaged name by name first (a soup of finished runs of one architecture). With
+    --sky-cut-training, the offsets are set without the rows the sky margin leaves out, as
+    that run's were."""
     import torch
 
     from services.segtrain.net import RoadSegNet
@@ -353,11 +392,12 @@ def _export_only(args, out: Path, frames: np.ndarray, labels: np.ndarray,
     model = RoadSegNet(num_classes=seg_data.TRAIN_CLASSES, **saved["arch"])
     model.load_state_dict(average_states([m["state"] for m in members]))
     model.eval()  # every batch norm on its running statistics, frozen or not
-    n_val = validation_frames(len(frames))
-    x_val = torch.from_numpy(frames[:n_val]).permute(0, 3, 1, 2)
-    y_val = torch.from_numpy(labels[:n_val])
+    n_val, top = validation_frames(len(frames)), training_sky_rows(args)
+    x_val = torch.from_numpy(frames[:n_val, top:]).permute(0, 3, 1, 2)
+    y_val = torch.from_numpy(labels[:n_val, top:])
     log = calibrate_and_export(model, x_val, y_val, frames[:n_val], labels[:n_val], out,
-                               seed=args.seed, frozen_norms=bool(saved.get("frozen_norms")))
+                               seed=args.seed, frozen_norms=bool(saved.get("frozen_norms")),
+                               sky_fraction=top / INPUT_SIZE[1])
     log.update(_flip_and_border(args, out), weights=str(args.export_only), seed=args.seed,
                junctions=export_junctions(args),
                frames=n_val)
@@ -409,7 +449,8 @@ def fit_border_step(model_path, *, seed: int, frames: int, args, budget_s: float
                                            **frame_cache(args), turn_prob=args.turn_prob,
                                            synth_share=args.synth_share)
     render_s = time.perf_counter() - t0
-    result = calibrate_border_net(model_path, images, labels, seed=seed)
+    result = calibrate_border_net(model_path, images, labels, seed=seed,
+                                  sky_fraction=training_sky_rows(args) / INPUT_SIZE[1])
     if result["border_net"] is not None:
         set_metadata(model_path, border_net=result["border_net"])
     log = {k: v for k, v in result.items() if k != "border_net"}
@@ -508,6 +549,7 @@ def _finish(args, out: Path, result: dict, t_start: float) -> int:
         + ([] if args.flip_average else ["--no-flip-average"])
         + ([f"--sky-margin-deg {args.sky_margin_deg:g}"]
            if args.sky_margin_deg is not None else [])
+        + (["--sky-cut-training"] if getattr(args, "sky_cut_training", False) else [])
         + ([f"--border-frames {args.border_frames}"] if args.border_frames else [])
         + ([f"--border-seed {args.border_seed}"]
            if args.border_frames and args.border_seed != args.seed + BORDER_SEED_OFFSET
@@ -532,7 +574,8 @@ def train_and_export(frames, labels, out: Path, *, seed: int, **kw) -> dict:
     """train_model, then calibrate_and_export on the run's held-out frames -> the training
     log's entries."""
     model, frozen_norms, held_out, result = train_model(frames, labels, out, seed=seed, **kw)
-    exported = calibrate_and_export(model, *held_out, out, seed=seed, frozen_norms=frozen_norms)
+    exported = calibrate_and_export(model, *held_out, out, seed=seed, frozen_norms=frozen_norms,
+                                    sky_fraction=kw.get("top_rows", 0) / frames.shape[1])
     return {**result, **exported}
 
 
@@ -543,7 +586,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
                 capacity: int = 0, crop_hw: tuple[int, int] = CROP_HW,
                 hard_pixels: float = 1.0, mirror: float = 0.0, ema: float = 0.0,
                 average_init: float = 0.0, distill: float = 0.0, teacher: str | None = None,
-                bf16: bool = False, full_after: float = 1.0):
+                bf16: bool = False, full_after: float = 1.0, top_rows: int = 0):
     """Train RoadSegNet of size `arch` (archs.ARCHS) for train_s seconds (or, with `steps`,
     for exactly that many steps, the schedule spread over them) on `device` (cpu: 2
     threads; cuda: the frames live on the GPU), from scratch or, with `init`, from a trained
@@ -561,8 +604,10 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     (weights, optimizer and loss stay float32); with `more`
     (FrameStream.take) frames keep arriving while it trains, up to `capacity` in all;
     batches are random `crop_hw` (H, W) windows of the frames (the whole frame when it is the
-    frame's size), whole frames once `full_after` of the run has passed -> (the model in
-    eval mode, whether its batch norms were kept frozen, the
+    frame's size), whole frames once `full_after` of the run has passed; with `top_rows`,
+    every frame without its top rows, as the runtime segments frames under a sky margin
+    (training, the logit offsets and the validation; whole frames are then the rest) ->
+    (the model in eval mode, whether its batch norms were kept frozen, the
     held-out frames (x_val, y_val: copies as uint8 tensors NCHW and NHW on `device`; the same
     as views of `frames`, `labels`), the training log's entries)."""
     import torch
@@ -586,13 +631,17 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     y_all = torch.empty((cap,) + labels.shape[1:], dtype=torch.uint8, device=dev)  # int64/batch
     x_all[:n_loaded] = torch.from_numpy(frames).to(dev).permute(0, 3, 1, 2)
     y_all[:n_loaded] = torch.from_numpy(labels).to(dev)
-    weights = class_weights(labels[n_val:])
+    check_top_rows(top_rows, frames.shape[1:3], crop_hw)
+    x_rows, y_rows = x_all[:, :, top_rows:], y_all[:, top_rows:]  # views: filled with x_all
+    if tuple(crop_hw) == tuple(frames.shape[1:3]):
+        crop_hw = tuple(x_rows.shape[2:4])
+    weights = class_weights(labels[n_val:, top_rows:])
     model = RoadSegNet(num_classes=seg_data.TRAIN_CLASSES, **ARCHS[arch])
     frozen_norms = _load_init(model, init) if init else False
     check_average_init(average_init, init)
     start = ({k: v.detach().clone() for k, v in model.state_dict().items()}
              if average_init else None)
-    whole = tuple(crop_hw) == tuple(frames.shape[1:3])
+    whole = tuple(crop_hw) == tuple(x_rows.shape[2:4])
     check_distill(distill, init, more is None, teacher, crop_hw)
     check_full_after(full_after, "full" if whole else "crops")
     model = model.to(dev)
@@ -605,6 +654,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
             targets = teacher_logits(_frozen_copy(model), x_all[:n_loaded])
         logger.info("%s's flip-averaged logits of %d frames in %.0f s", teacher or "--init",
                     n_loaded, time.perf_counter() - t_teach)
+        targets = targets[:, :, top_rows // 2:]  # at 1/2 resolution; top_rows is even
     lr_max = LR_FINETUNE if init else LR_MAX
     opt = torch.optim.AdamW(model.parameters(), lr=lr_max, weight_decay=1e-4)
     check_hard_pixels(hard_pixels)
@@ -634,10 +684,10 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
             n_loaded += k
         n_drawn = batch // 2 if mirror else batch  # with `mirror`, the rest are their mirrors
         idx = torch.from_numpy(rng.integers(n_val, n_loaded, n_drawn)).to(dev)
-        window = crop_hw if frac < full_after else tuple(x_all.shape[2:4])
-        xb, yb, top, tb = _crop_batch(x_all[idx], y_all[idx], rng, window,
+        window = crop_hw if frac < full_after else tuple(x_rows.shape[2:4])
+        xb, yb, top, tb = _crop_batch(x_rows[idx], y_rows[idx], rng, window,
                                       None if targets is None else targets[idx])
-        model.crop_rows = (top, x_all.shape[2])
+        model.crop_rows = (top_rows + top, x_all.shape[2])
         if targets is None:
             xb, yb = augment(xb, yb.long(), rng)
         else:
@@ -678,7 +728,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
                                              [1.0 - average_init, average_init]))
     # the held-out frames' first half sets the logit offsets and paint borders (the tensors
     # copied, so the training tensors can go)
-    held_out = (x_all[:n_val].clone(), y_all[:n_val].clone(), frames[:n_val], labels[:n_val])
+    held_out = (x_rows[:n_val].clone(), y_rows[:n_val].clone(), frames[:n_val], labels[:n_val])
     return model, frozen_norms, held_out, {
         "steps": step, "train_s": round(time.perf_counter() - t0, 1), "frames": n_loaded,
         "class_weights": np.round(weights, 3).tolist(),
@@ -688,7 +738,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
         "iou_loss_weight": iou_loss, "hard_pixels": hard_pixels, "arch": arch,
         "mirror_consistency": mirror, "ema": ema, "average_init": average_init,
         "distill": distill, "teacher": teacher, "bf16": bf16, "crop_hw": list(crop_hw),
-        "full_after": full_after, "frozen_norms": frozen_norms,
+        "full_after": full_after, "frozen_norms": frozen_norms, "top_rows": top_rows,
     }
 
 
@@ -703,12 +753,15 @@ def save_weights(model, frozen_norms: bool, path: Path) -> dict:
 
 
 def calibrate_and_export(model, x_val, y_val, frames_val: np.ndarray, labels_val: np.ndarray,
-                         out: Path, *, seed: int, frozen_norms: bool) -> dict:
+                         out: Path, *, seed: int, frozen_norms: bool,
+                         sky_fraction: float = 0.0) -> dict:
     """A trained model (eval mode, whole frames) and its run's held-out frames (x_val, y_val:
     uint8 tensors NCHW and NHW on the model's device; frames_val, labels_val: the same as
     arrays): the first half sets the logit offsets (calibrate_bias) and the paint-border
     settings (calibrate_refine), the second half validates; writes out/roadseg.pt and the
-    checked out/roadseg.onnx -> what it measured, for the training log."""
+    checked out/roadseg.onnx -> what it measured, for the training log. `sky_fraction`: the
+    share of the frames' top rows the runtime will leave out (x_val are already without
+    them), for the paint-border settings and the runtime's validation."""
     from services.segtrain.net import count_parameters
 
     n_cal = len(x_val) // 2
@@ -724,9 +777,11 @@ def calibrate_and_export(model, x_val, y_val, frames_val: np.ndarray, labels_val
     save_weights(model, frozen_norms, out / "roadseg.pt")
     export_onnx(model, model_path, seed=seed)
     max_diff, agree = verify_onnx(model, model_path, x_check)
-    refine = calibrate_refine(model_path, frames_val[:n_cal], labels_val[:n_cal])
+    refine = calibrate_refine(model_path, frames_val[:n_cal], labels_val[:n_cal],
+                              sky_fraction=sky_fraction)
     set_metadata(model_path, refine=refine)
-    val_runtime = runtime_iou(model_path, frames_val[n_cal:], labels_val[n_cal:])
+    val_runtime = runtime_iou(model_path, frames_val[n_cal:], labels_val[n_cal:],
+                              sky_fraction=sky_fraction)
     logger.info("paint borders: %s; validation IoU as the runtime segments: %s", refine,
                 val_runtime)
     return {"params": count_parameters(model), "val_iou_town": val_iou,
@@ -1190,12 +1245,14 @@ REFINE_WINDOWS = (3, 5, 7, 9)
 REFINE_LEVELS = (0.4, 0.5, 0.6, 0.7, 0.8)
 
 
-def calibrate_refine(model_path, frames: np.ndarray, labels: np.ndarray) -> dict:
+def calibrate_refine(model_path, frames: np.ndarray, labels: np.ndarray,
+                     sky_fraction: float = 0.0) -> dict:
     """The paint-border settings (common.segmentation.refine_paint_borders: box `window`,
     threshold `level`) that maximise the mean paint IoU of the exported model as the runtime
     runs it, on up to CALIBRATE_FRAMES town frames (N, H, W, 3) at the model's input size;
-    {} (no refinement) when no setting beats the labels as they are."""
-    seg = OnnxSegmenter(model_path, refine={}, border_net=False)
+    {} (no refinement) when no setting beats the labels as they are. `sky_fraction`: the
+    top share of rows left out, as OnnxSegmenter's."""
+    seg = OnnxSegmenter(model_path, refine={}, border_net=False, sky_fraction=sky_fraction)
     frames, labels = frames[:CALIBRATE_FRAMES], labels[:CALIBRATE_FRAMES]
     raw = [seg.segment_model_size(f) for f in frames]
     grays = [cv2.cvtColor(f, cv2.COLOR_RGB2GRAY) for f in frames]
@@ -1215,10 +1272,12 @@ def calibrate_refine(model_path, frames: np.ndarray, labels: np.ndarray) -> dict
     return best
 
 
-def runtime_iou(model_path, frames: np.ndarray, labels: np.ndarray) -> dict:
+def runtime_iou(model_path, frames: np.ndarray, labels: np.ndarray,
+                sky_fraction: float = 0.0) -> dict:
     """Per-class IoU (None: absent from the truth) of the exported model as OnnxSegmenter
-    segments (its metadata's settings) on town frames at the model's input size."""
-    return segmenter_iou(OnnxSegmenter(model_path), frames, labels)
+    segments (its metadata's settings; `sky_fraction` as its own) on town frames at the
+    model's input size."""
+    return segmenter_iou(OnnxSegmenter(model_path, sky_fraction=sky_fraction), frames, labels)
 
 
 def set_metadata(path, **updates) -> None:
@@ -1602,8 +1661,11 @@ def _percent_list(shares) -> str:
 
 def _crop_text(result: dict) -> str:
     h, w = result.get("crop_hw", CROP_HW)
-    if (w, h) == INPUT_SIZE:
-        return f"whole {w}x{h} frames (no crops)"
+    top = result.get("top_rows", 0)
+    if (w, h + top) == INPUT_SIZE:
+        return (f"whole {w}x{h} frames (no crops)" if not top else
+                f"whole {w}x{h + top} frames without their top {top} rows (no crops; the rows "
+                "the sky margin leaves out, --sky-cut-training)")
     full_after = result.get("full_after", 1.0)
     if full_after < 1.0:
         return (f"random {w}x{h} crops for the first {100 * full_after:g} % of the steps, "

@@ -2,6 +2,7 @@
 distillation from a teacher, the moving average of the weights, bfloat16 training, and crops
 then whole frames in one run (needs the optional torch extra: `.[train]`)."""
 
+import functools
 import json
 from pathlib import Path
 
@@ -561,3 +562,82 @@ def test_an_export_names_how_its_frames_differ_from_its_runs():
     assert export_frame_differences(export(), budgeted) == [
         "--steps given to the export, not to the run"]
     assert export_frame_differences(export(seed=9, steps=None, soup=None), {}) == []
+
+
+def test_sky_cut_training_trains_on_the_rows_the_runtime_segments(tmp_path, monkeypatch,
+                                                                   frame_cache):
+    """--sky-cut-training with --sky-margin-deg 4: every batch is the frames without the 96
+    top rows the runtime leaves out for the default camera at that margin (the rows' places in
+    the frame kept for the row embedding), the held-out frames that set the logit offsets too;
+    the log and the card say so, and the export names its margin."""
+    from common.camera import camera_from_config
+    from common.config import CameraConfig
+    from common.segmentation import OnnxSegmenter
+    from services.cli import main
+    from services.segtrain import border, train
+
+    seen = []
+    crop_batch = train._crop_batch
+
+    def recording(x, y, rng, crop_hw, half=None):
+        seen.append((tuple(x.shape[2:]), tuple(crop_hw)))
+        return crop_batch(x, y, rng, crop_hw, half)
+
+    calibrated = []
+    calibrate_bias = train.calibrate_bias
+
+    def calibrating(model, x_u8, y, rounds=2):
+        calibrated.append(tuple(x_u8.shape[2:]))
+        return calibrate_bias(model, x_u8, y, rounds)
+
+    fitted = []  # the sky share the paint-border settings and the border classifier see
+    for module, name in ((train, "calibrate_refine"), (border, "calibrate_border_net")):
+        monkeypatch.setattr(module, name, functools.partial(
+            lambda f, *a, sky_fraction=0.0, **k: fitted.append(sky_fraction) or f(
+                *a, sky_fraction=sky_fraction, **k), getattr(module, name)))
+    monkeypatch.setattr(train, "_crop_batch", recording)
+    monkeypatch.setattr(train, "calibrate_bias", calibrating)
+    out = tmp_path / "cut"
+    assert main(["train-seg", "--out", str(out), "--seed", "5", "--frames", "24", "--steps", "2",
+                 "--batch", "2", "--workers", "1", *frame_cache, "--crop", "full",
+                 "--no-flip-average", "--sky-margin-deg", "4", "--sky-cut-training",
+                 "--border-frames", "8", "--border-seed", "40"]) == 0
+    seg = OnnxSegmenter(out / "roadseg.onnx", camera=camera_from_config(CameraConfig()))
+    assert seg.sky_rows == 96
+    assert seen == [((264, 640), (264, 640))] * 2 and calibrated == [(264, 640)]
+    assert fitted == [96 / 360] * 2
+    log = json.loads((out / "train_log.json").read_text())
+    assert log["top_rows"] == 96 and "--sky-cut-training" in log["command"]
+    assert "without their top 96 rows" in (out / "MODEL_CARD.md").read_text()
+    # its weights exported again (--export-only) are calibrated on the same cut frames
+    calibrated.clear()
+    fitted.clear()
+    assert main(["train-seg", "--export-only", str(out / "roadseg.pt"), "--out",
+                 str(tmp_path / "again"), "--seed", "5", "--frames", "24", "--steps", "2",
+                 "--workers", "1", *frame_cache, "--no-flip-average", "--sky-margin-deg", "4",
+                 "--sky-cut-training"]) == 0
+    assert calibrated == [(264, 640)] and fitted == [96 / 360]
+
+
+def test_sky_cut_training_needs_a_margin(tmp_path, capsys):
+    from services.cli import main
+
+    out = tmp_path / "out"
+    for margin in ([], ["--sky-margin-deg", "-1"]):
+        assert main(["train-seg", "--out", str(out), "--sky-cut-training", *margin]) == 1
+        assert "give --sky-margin-deg D (D >= 0)" in capsys.readouterr().err
+    assert not any(out.iterdir())
+
+
+def test_train_model_refuses_top_rows_it_cannot_cut(tmp_path):
+    """Odd counts (a teacher's 1/2-resolution logits are cut with the frames), none left, or
+    crops taller than what is left: refused before any step."""
+    from common.errors import ConfigError
+    from services.segtrain.train import train_model
+
+    frames = np.zeros((8, 32, 64, 3), np.uint8)
+    labels = np.zeros((8, 32, 64), np.uint8)
+    for top_rows, crop_hw in ((3, (32, 64)), (32, (32, 64)), (20, (16, 32))):
+        with pytest.raises(ConfigError, match="top rows|do not fit"):
+            train_model(frames, labels, tmp_path, seed=0, train_s=1.0, steps=1,
+                        crop_hw=crop_hw, top_rows=top_rows)
