@@ -2,8 +2,9 @@
 (crop, augmentation, forward, loss, backward, AdamW) in float32 and under bfloat16 autocast
 (`roadmap train-seg --bf16`), for the two kinds of run in the recipe: a fine-tune of the
 packaged model on whole 640x360 frames (its batch norms frozen) and a run from scratch on the
-default 384x224 crops. Writes JSON; the bf16 / float32 ratios, measured in one run on the same
-machine, are the figures to compare (absolute times move with the machine and its load).
+default 384x224 crops, both of the packaged model's architecture (its metadata `arch`).
+Writes JSON; the bf16 / float32 ratios, measured in one run on the same machine, are the
+figures to compare (absolute times move with the machine and its load).
 
 Frames are random pixels and labels: a step's arithmetic does not depend on what they show.
 Needs the optional training extra (`pip install -e '.[train]'`).
@@ -42,7 +43,21 @@ def _frames(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return frames, labels
 
 
-def time_steps(frames, labels, *, init, crop_hw, bf16: bool, steps: int, batch: int) -> dict:
+def packaged_arch() -> str:
+    """The train-seg --arch name of the packaged model's network (its metadata `arch`)."""
+    from services.segtrain.archs import ARCHS
+    from services.segtrain.train import _metadata
+
+    arch = _metadata(DEFAULT_MODEL).get("arch")
+    names = [name for name, spec in ARCHS.items() if spec == arch]
+    if not names:
+        raise SystemExit(f"bench_train_step: {DEFAULT_MODEL} names no known architecture "
+                         f"(metadata arch {arch}; services/segtrain/archs.py)")
+    return names[0]
+
+
+def time_steps(frames, labels, *, init, crop_hw, bf16: bool, steps: int, batch: int,
+               arch: str) -> dict:
     """Two fresh train_model runs: s_per_step is a `steps`-step run's training time over its
     steps, its first step (allocation, oneDNN's kernel choice) included; first_step_s is a
     1-step run's time, to show how much of it that first step is."""
@@ -52,7 +67,7 @@ def time_steps(frames, labels, *, init, crop_hw, bf16: bool, steps: int, batch: 
         with tempfile.TemporaryDirectory() as out:
             _, _, _, log = train_model(frames, labels, Path(out), seed=0, train_s=0.0,
                                        steps=n, batch=batch, init=init, crop_hw=crop_hw,
-                                       bf16=bf16)
+                                       bf16=bf16, arch=arch)
         return log["train_s"]
 
     first = run(1)
@@ -65,12 +80,12 @@ def run_all(steps: int, batch: int) -> dict:
     frames, labels = _frames(48)
     report = {"python": platform.python_version(), "cpu_count": os.cpu_count(),
               **cpu_description(),  # bfloat16 is native with avx512_bf16 or amx_tile only
-              "batch": batch, "runs": {}}
+              "batch": batch, "arch": packaged_arch(), "runs": {}}
     for name, (init, crop_hw) in RUNS.items():
         f32 = time_steps(frames, labels, init=init, crop_hw=crop_hw, bf16=False, steps=steps,
-                         batch=batch)
+                         batch=batch, arch=report["arch"])
         b16 = time_steps(frames, labels, init=init, crop_hw=crop_hw, bf16=True, steps=steps,
-                         batch=batch)
+                         batch=batch, arch=report["arch"])
         report["runs"][name] = {"float32": f32, "bf16": b16,
                                 "bf16_over_float32": round(b16["s_per_step"]
                                                            / f32["s_per_step"], 3)}
