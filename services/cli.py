@@ -193,10 +193,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "network whose coarsest stage reads the whole frame, as m64's does); "
                         "default: not written (the runtime's default, 10)")
     p.add_argument("--sky-cut-training", action="store_true",
-                   help="train (and set the logit offsets) on frames without the top rows "
-                        "that --sky-margin-deg leaves out for the default camera, as the "
-                        "runtime will segment them (the paint-border settings and the border "
-                        "classifier are still fitted on whole frames)")
+                   help="train, set the logit offsets and paint borders and fit the border "
+                        "classifier on frames without the top rows that --sky-margin-deg "
+                        "leaves out for the default camera, as the runtime will segment them "
+                        "(also with --export-only)")
     p.add_argument("--border-seed", type=int, default=None,
                    help="the towns of the border classifier's frames (default: --seed + 31)")
     p.add_argument("--reexport", default=None, metavar="MODEL",
