@@ -125,9 +125,8 @@ def calibrate_border_net(model_path, frames, labels, *, seed: int = 0,
     n_check = max(int(len(frames) * CHECK_SHARE), 1)
     fit_frames, fit_labels = frames[:-n_check], labels[:-n_check]
     check_frames, check_labels = frames[-n_check:], labels[-n_check:]
-    x, y = border_samples(raw_segmenter(model_path, sky_fraction=sky_fraction), fit_frames,
-                          fit_labels,
-                          np.random.default_rng(seed))
+    seg = raw_segmenter(model_path, sky_fraction=sky_fraction)
+    x, y = border_samples(seg, fit_frames, fit_labels, np.random.default_rng(seed))
     logger.info("%d border samples from %d frames (classes %s)", len(x), len(fit_frames),
                 np.bincount(y, minlength=NUM_CLASSES).tolist())
     spec = fit_border_net(x, y, seed=seed)

@@ -261,6 +261,11 @@ def training_sky_rows(args) -> int:
     return sky_rows_of(sky_fraction(camera, args.sky_margin_deg), INPUT_SIZE[1])
 
 
+def training_sky_share(args) -> float:
+    """training_sky_rows as a share of the frames' height (OnnxSegmenter's sky_fraction)."""
+    return training_sky_rows(args) / INPUT_SIZE[1]
+
+
 def check_top_rows(top_rows: int, frame_hw, crop_hw) -> None:
     """Rows left out at the top of every training frame (H, W) `frame_hw`: even (a teacher's
     1/2-resolution logits are cut with them), leaving some, and room for the crops (whole
@@ -326,7 +331,7 @@ def _train_soup(args, out: Path, t_start: float) -> int:
     x_val, y_val, frames_val, labels_val = _calibration_first(held)
     exported = calibrate_and_export(model, x_val, y_val, frames_val, labels_val, out,
                                     seed=args.seed, frozen_norms=frozen_norms,
-                                    sky_fraction=training_sky_rows(args) / INPUT_SIZE[1])
+                                    sky_fraction=training_sky_share(args))
     result = {"soup": runs, "steps": sum(r["steps"] for r in runs),
               "frames": sum(r["frames"] for r in runs),
               "train_s": round(sum(r["train_s"] for r in runs), 1),
@@ -392,7 +397,7 @@ def _export_only(args, out: Path, frames: np.ndarray, labels: np.ndarray,
     model = RoadSegNet(num_classes=seg_data.TRAIN_CLASSES, **saved["arch"])
     model.load_state_dict(average_states([m["state"] for m in members]))
     model.eval()  # every batch norm on its running statistics, frozen or not
-    n_val, top = validation_frames(len(frames)), training_sky_rows(args)
+    n_val, top = validation_frames(len(frames)), training_sky_rows(args)  # cut as the run's
     x_val = torch.from_numpy(frames[:n_val, top:]).permute(0, 3, 1, 2)
     y_val = torch.from_numpy(labels[:n_val, top:])
     log = calibrate_and_export(model, x_val, y_val, frames[:n_val], labels[:n_val], out,
@@ -450,7 +455,7 @@ def fit_border_step(model_path, *, seed: int, frames: int, args, budget_s: float
                                            synth_share=args.synth_share)
     render_s = time.perf_counter() - t0
     result = calibrate_border_net(model_path, images, labels, seed=seed,
-                                  sky_fraction=training_sky_rows(args) / INPUT_SIZE[1])
+                                  sky_fraction=training_sky_share(args))
     if result["border_net"] is not None:
         set_metadata(model_path, border_net=result["border_net"])
     log = {k: v for k, v in result.items() if k != "border_net"}
@@ -626,12 +631,12 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
         frames, labels = frames.copy(), labels.copy()
         order = interleaved_halves(n_val)
         frames[:n_val], labels[:n_val] = frames[order], labels[order]
+    check_top_rows(top_rows, frames.shape[1:3], crop_hw)  # before gigabytes are allocated
     n_loaded, cap = len(frames), max(capacity, len(frames)) if more is not None else len(frames)
     x_all = torch.empty((cap, 3) + frames.shape[1:3], dtype=torch.uint8, device=dev)  # NCHW
     y_all = torch.empty((cap,) + labels.shape[1:], dtype=torch.uint8, device=dev)  # int64/batch
     x_all[:n_loaded] = torch.from_numpy(frames).to(dev).permute(0, 3, 1, 2)
     y_all[:n_loaded] = torch.from_numpy(labels).to(dev)
-    check_top_rows(top_rows, frames.shape[1:3], crop_hw)
     x_rows, y_rows = x_all[:, :, top_rows:], y_all[:, top_rows:]  # views: filled with x_all
     if tuple(crop_hw) == tuple(frames.shape[1:3]):
         crop_hw = tuple(x_rows.shape[2:4])
