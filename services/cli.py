@@ -166,9 +166,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="calibrate and export a run's saved weights (roadseg.pt, or an --ema "
                         "run's roadseg-last.pt) as that run would have, on the held-out frames "
                         "of --seed and --frames (give the run's; --soup DOSE: of that dose's "
-                        "towns), with flip averaging and --border-frames, to "
+                        "towns; --stream: a streamed run's, of --stream-junctions' towns), "
+                        "with flip averaging and --border-frames, to "
                         "--out/roadseg.onnx, and stop; several runs' weights are averaged name "
                         "by name first")
+    p.add_argument("--keep-offsets", action="store_true",
+                   help="with --export-only: the weights carry their run's logit offsets "
+                        "already (a run's roadseg.pt; not an --ema run's roadseg-last.pt): "
+                        "export them as they are, setting the paint borders and the rest as "
+                        "that run did (default: calibrate offsets on top)")
     p.add_argument("--border-only", default=None, metavar="MODEL",
                    help="fit the learned paint-border classifier of a trained ONNX model "
                         "(metadata `border_net`) on --frames town frames of --seed (use a seed "
@@ -203,6 +209,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write a trained RoadSegNet ONNX file again as this version exports it "
                         "(weights and metadata kept; since 2026-11-25: a dynamic input height, "
                         "for OnnxSegmenter's sky rows) to --out/roadseg.onnx, check it, and stop")
+    p.add_argument("--set-flip-average", choices=["on", "off"], default=None,
+                   help="with --reexport: switch the file's metadata `flip_average` (the "
+                        "runtime's second, mirrored pass) on or off; its logit offsets and "
+                        "border classifier stay as they were fitted (default: kept)")
     p.add_argument("--turn-prob", type=float, default=None,
                    help="share of training poses turned 15-90 deg off the route, lane lines "
                         "crossing the view (default: services/segtrain/data.py TURN_PROB)")

@@ -83,9 +83,15 @@ def train_command(args, cfg) -> int:
     if args.border_frames and args.border_seed == args.seed:
         raise ConfigError(f"--border-seed {args.border_seed}: the border classifier must be "
                           "fitted on towns the network did not train on (another seed)")
+    if getattr(args, "keep_offsets", False) and not args.export_only:
+        raise ConfigError("--keep-offsets is --export-only's: give --export-only PT")
+    flip = getattr(args, "set_flip_average", None)
+    if flip is not None and not args.reexport:
+        raise ConfigError("--set-flip-average rewrites a file's metadata: give --reexport MODEL")
     if args.reexport:
+        updates = {} if flip is None else {"flip_average": flip == "on"}
         logger.info("%s -> %s: %s", args.reexport, out / "roadseg.onnx",
-                    reexport_onnx(args.reexport, out / "roadseg.onnx"))
+                    reexport_onnx(args.reexport, out / "roadseg.onnx", **updates))
         return 0
     if args.border_only:
         return _border_only(args, out)
@@ -103,12 +109,12 @@ def train_command(args, cfg) -> int:
         raise ConfigError("--stream-junctions: the junction-line doses of a streamed run's "
                           "towns; give --stream (without it: --soup DOSE)")
     if args.stream:
-        if args.export_only:
-            raise ConfigError("--export-only with --stream: it calibrates on a rendered run's "
-                              "held-out frames; leave out --stream")
         if args.steps is not None:
             raise ConfigError("--steps with --stream: streamed frames arrive at the machine's "
                               "pace, so the run would not be reproducible; leave one out")
+        if args.export_only:
+            members = load_export_members(args)  # before the frames are rendered
+            return _export_only(args, out, *streamed_held_out(args), members)
         return _train_streamed(args, out, t_start)
     if args.soup and not args.export_only:
         return _train_soup(args, out, t_start)
@@ -132,7 +138,8 @@ def train_command(args, cfg) -> int:
         logger.info("%d training frames rendered in %.0f s (cached)", len(frames), render_s)
         return 0
     if args.export_only:
-        return _export_only(args, out, frames, labels, members)
+        n_val = validation_frames(len(frames))
+        return _export_only(args, out, frames[:n_val], labels[:n_val], members)
     if args.refine_only:  # the calibration frames a training run on these frames would use
         n_cal = validation_frames(len(frames)) // 2
         refine = calibrate_refine(args.refine_only, frames[:n_cal], labels[:n_cal])
@@ -381,14 +388,16 @@ def _calibration_first(held: list[tuple]) -> tuple:
 def _export_only(args, out: Path, frames: np.ndarray, labels: np.ndarray,
                  members: list[dict]) -> int:
     """--export-only PT: a training run's saved weights (roadseg.pt, or the roadseg-last.pt of
-    an --ema run) calibrated and exported as that run would have (calibrate_and_export on the
-    held-out frames of these rendering settings, flip averaging, --border-frames) to
-    --out/roadseg.onnx; the log goes to --out/export_log.json. With the run's --seed and
-    --frames (and --soup DOSE for a run on that dose's towns), the held-out frames are the
-    run's: an --ema run's two weights, compared alike. --export-only PT1,PT2,...: the runs'
-    weights averaged name by name first (a soup of finished runs of one architecture). With
-    --sky-cut-training, the offsets are set without the rows the sky margin leaves out, as
-    that run's were."""
+    an --ema run) calibrated and exported as that run would have (calibrate_and_export on
+    `frames`, `labels`: the held-out frames of these rendering settings, flip averaging,
+    --border-frames) to --out/roadseg.onnx; the log goes to --out/export_log.json. With the
+    run's --seed and --frames (and --soup DOSE for a run on that dose's towns; with --stream,
+    its --seed and --stream-junctions), the held-out frames are the run's: an --ema run's two
+    weights, compared alike. --export-only PT1,PT2,...: the runs' weights averaged name by
+    name first (a soup of finished runs of one architecture). With --sky-cut-training, the
+    offsets are set without the rows the sky margin leaves out, as that run's were. A run's
+    roadseg.pt carries its logit offsets in the head's bias: --keep-offsets exports it with
+    them (calibrated again, they move on from where the run's search stopped)."""
     import torch
 
     from services.segtrain.net import RoadSegNet
@@ -397,12 +406,13 @@ def _export_only(args, out: Path, frames: np.ndarray, labels: np.ndarray,
     model = RoadSegNet(num_classes=seg_data.TRAIN_CLASSES, **saved["arch"])
     model.load_state_dict(average_states([m["state"] for m in members]))
     model.eval()  # every batch norm on its running statistics, frozen or not
-    n_val, top = validation_frames(len(frames)), training_sky_rows(args)  # cut as the run's
-    x_val = torch.from_numpy(frames[:n_val, top:]).permute(0, 3, 1, 2)
-    y_val = torch.from_numpy(labels[:n_val, top:])
-    log = calibrate_and_export(model, x_val, y_val, frames[:n_val], labels[:n_val], out,
+    n_val, top = len(frames), training_sky_rows(args)  # cut as the run's
+    x_val = torch.from_numpy(frames[:, top:]).permute(0, 3, 1, 2)
+    y_val = torch.from_numpy(labels[:, top:])
+    log = calibrate_and_export(model, x_val, y_val, frames, labels, out,
                                seed=args.seed, frozen_norms=bool(saved.get("frozen_norms")),
-                               sky_fraction=top / INPUT_SIZE[1])
+                               sky_fraction=top / INPUT_SIZE[1],
+                               offsets=not getattr(args, "keep_offsets", False))
     log.update(_flip_and_border(args, out), weights=str(args.export_only), seed=args.seed,
                junctions=export_junctions(args),
                frames=n_val)
@@ -490,6 +500,32 @@ def crop_size(text: str, frame_hw) -> tuple[int, int]:
 # first STREAM_VAL_FRAMES of them (10 chunks: 3 synth.py, 7 simulator) held out.
 STREAM_START_FRAMES = 480
 STREAM_VAL_FRAMES = 240
+
+
+def streamed_held_out(args) -> tuple[np.ndarray, np.ndarray]:
+    """The held-out frames of a streamed run of --seed (and --stream-junctions, --turn-prob,
+    --synth-share): the stream's first STREAM_VAL_FRAMES, each chunk rendered from (seed, k)
+    alone, in the order train_model holds them (interleaved_halves) -> (frames, labels). A
+    streamed run trains on what arrived in time, but these it holds out whatever the
+    machine, so --export-only --stream calibrates its weights as the run did."""
+    # the run starts on the first min(STREAM_START_FRAMES, --frames), whole chunks, and holds
+    # out half of them, at most STREAM_VAL_FRAMES (train_model)
+    chunk = seg_data.CHUNK_FRAMES
+    n_val = min(STREAM_VAL_FRAMES,
+                -(-min(STREAM_START_FRAMES, args.frames) // chunk) * chunk // 2)
+    stream = seg_data.FrameStream(seed=args.seed, input_size=INPUT_SIZE, max_frames=n_val,
+                                  workers=args.workers, turn_prob=args.turn_prob,
+                                  synth_share=args.synth_share,
+                                  junctions=tuple(args.stream_junctions or ("light",)))
+    try:
+        frames, labels = stream.wait(n_val, timeout_s=30 * 60.0)
+    finally:
+        stream.close()
+    if len(frames) < n_val:
+        raise RuntimeError(f"--export-only --stream: {len(frames)} of the stream's {n_val} "
+                           "held-out frames rendered in 30 min")
+    order = interleaved_halves(n_val)
+    return frames[:n_val][order], labels[:n_val][order]
 
 
 def _train_streamed(args, out: Path, t_start: float) -> int:
@@ -759,18 +795,20 @@ def save_weights(model, frozen_norms: bool, path: Path) -> dict:
 
 def calibrate_and_export(model, x_val, y_val, frames_val: np.ndarray, labels_val: np.ndarray,
                          out: Path, *, seed: int, frozen_norms: bool,
-                         sky_fraction: float = 0.0) -> dict:
+                         sky_fraction: float = 0.0, offsets: bool = True) -> dict:
     """A trained model (eval mode, whole frames) and its run's held-out frames (x_val, y_val:
     uint8 tensors NCHW and NHW on the model's device; frames_val, labels_val: the same as
     arrays): the first half sets the logit offsets (calibrate_bias) and the paint-border
     settings (calibrate_refine), the second half validates; writes out/roadseg.pt and the
     checked out/roadseg.onnx -> what it measured, for the training log. `sky_fraction`: the
     share of the frames' top rows the runtime will leave out (x_val are already without
-    them), for the paint-border settings and the runtime's validation."""
+    them), for the paint-border settings and the runtime's validation. `offsets` False: the
+    model's head keeps its bias (weights that carry their run's offsets already)."""
     from services.segtrain.net import count_parameters
 
     n_cal = len(x_val) // 2
-    bias = calibrate_bias(model, x_val[:n_cal], y_val[:n_cal])
+    bias = (calibrate_bias(model, x_val[:n_cal], y_val[:n_cal]) if offsets
+            else [0.0] * int(model.head.bias.numel() // model.subpixel ** 2))
     model.export_classes = NUM_CLASSES  # auxiliary classes folded into none from here on
     val_iou = _validate(model, x_val[n_cal:], y_val[n_cal:])
     logger.info("validation IoU (procedural towns, held out): %s", val_iou)
@@ -1477,10 +1515,13 @@ def export_onnx(model, path: Path, *, seed: int, block: int = 16) -> None:
     onnx.save(proto, str(path))
 
 
-def reexport_onnx(src, dst) -> dict:
+def reexport_onnx(src, dst, **updates) -> dict:
     """The RoadSegNet export `src` written again to `dst` by export_onnx (same weights, its
-    metadata kept), checked against `src` on random frames -> {max_abs_diff, argmax_agreement}.
-    For files exported before export_onnx changed (a fixed input height before 2026-11-25)."""
+    metadata kept but for `updates`), checked against `src` on random frames -> {max_abs_diff,
+    argmax_agreement}. For files exported before export_onnx changed (a fixed input height
+    before 2026-11-25), and for a file fitted for one pass that the runtime is to run in two
+    (flip_average=True: run G2 of 2026-11-28, whose offsets and border classifier fitted for
+    one pass localized better in two passes than refitted for two)."""
     import onnxruntime as ort
 
     from services.segtrain.net import RoadSegNet, load_onnx_weights
@@ -1498,7 +1539,7 @@ def reexport_onnx(src, dst) -> dict:
     model.export_classes = NUM_CLASSES
     Path(dst).parent.mkdir(parents=True, exist_ok=True)
     export_onnx(model, Path(dst), seed=meta.get("seed", 0))
-    set_metadata(dst, **{k: v for k, v in meta.items() if k != "arch"})  # the export's arch
+    set_metadata(dst, **{k: v for k, v in meta.items() if k != "arch"} | updates)  # its arch
     new = ort.InferenceSession(str(dst), providers=["CPUExecutionProvider"])
     w, h = INPUT_SIZE
     x = np.random.default_rng(0).random((4, 3, h, w), np.float32)

@@ -230,11 +230,10 @@ def test_bad_steps_and_export_only_are_refused_before_rendering(tmp_path, capsys
     assert "would not be reproducible" in capsys.readouterr().err
     assert main(["train-seg", "--out", str(out), "--export-only", "x.pt"]) == 1
     assert "--export-only x.pt: no such file" in capsys.readouterr().err
-    weights = tmp_path / "weights.pt"
-    weights.write_bytes(b"")
-    assert main(["train-seg", "--out", str(out), "--export-only", str(weights),
-                 "--stream"]) == 1
-    assert "leave out --stream" in capsys.readouterr().err
+    assert main(["train-seg", "--out", str(out), "--keep-offsets"]) == 1
+    assert "give --export-only PT" in capsys.readouterr().err
+    assert main(["train-seg", "--out", str(out), "--set-flip-average", "on"]) == 1
+    assert "give --reexport MODEL" in capsys.readouterr().err
     assert main(["train-seg", "--out", str(out), "--no-cache", "--cache-dir", str(out)]) == 1
     assert "--cache-dir with --no-cache: leave one out" in capsys.readouterr().err
     assert not any(out.iterdir())  # nothing rendered, nothing written
@@ -315,6 +314,49 @@ def test_an_export_of_several_runs_is_the_export_of_their_averaged_weights(
                  "--export-only", f"{pts},{tmp_path / 'other.pt'}"]) == 1
     assert "is not of" in capsys.readouterr().err
     assert not any((tmp_path / "bad").iterdir())  # refused before rendering
+
+
+def test_a_run_exported_again_with_its_offsets_and_a_streamed_run_on_its_held_out_frames(
+        tmp_path, frame_cache):
+    """--export-only PT --keep-offsets: a run's roadseg.pt, whose head carries its logit
+    offsets, exported as that run did, byte for byte; with --stream, calibrated on the
+    streamed run's held-out frames (the stream's first chunks, interleaved as train_model
+    holds them); --reexport --set-flip-average switches the runtime's second pass alone."""
+    from services.cli import build_parser, main
+    from services.segtrain.data import SYNTH_SHARE, TURN_PROB, _render_chunk, _sim_available
+    from services.segtrain.train import STREAM_VAL_FRAMES, _metadata, streamed_held_out
+
+    run = ["--seed", "5", "--frames", "16", "--steps", "20", "--batch", "1", "--workers", "1",
+           *frame_cache, "--no-flip-average"]
+    assert main(["train-seg", "--out", str(tmp_path / "a"), *run]) == 0
+    weights = str(tmp_path / "a" / "roadseg.pt")
+    assert main(["train-seg", "--out", str(tmp_path / "again"), *run, "--export-only",
+                 weights, "--keep-offsets"]) == 0
+    again = tmp_path / "again" / "roadseg.onnx"
+    assert again.read_bytes() == (tmp_path / "a" / "roadseg.onnx").read_bytes()
+    assert json.loads((tmp_path / "again" / "export_log.json").read_text())["logit_bias"] == (
+        [0.0] * CLASSES)
+
+    args = build_parser().parse_args(
+        ["train-seg", "--seed", "5", "--frames", "48", "--stream", "--stream-junctions",
+         "light,heavy"])
+    args.turn_prob, args.synth_share = TURN_PROB, SYNTH_SHARE
+    frames, labels = streamed_held_out(args)  # min(480, 48) frames at the start: 24 held out
+    chunk, _ = _render_chunk((5, 0, (640, 360), _sim_available(), TURN_PROB, SYNTH_SHARE,
+                              "light"))
+    assert len(frames) == 24 < STREAM_VAL_FRAMES
+    assert np.array_equal(frames, chunk[np.r_[0:24:2, 1:24:2]])
+    assert main(["train-seg", "--out", str(tmp_path / "streamed"), "--seed", "5", "--frames",
+                 "48", "--workers", "1", "--stream", "--stream-junctions", "light,heavy",
+                 "--export-only", weights, "--keep-offsets"]) == 0
+    log = json.loads((tmp_path / "streamed" / "export_log.json").read_text())
+    assert log["frames"] == 24 and log["flip_average"]
+
+    assert main(["train-seg", "--out", str(tmp_path / "two"), "--reexport", str(again),
+                 "--set-flip-average", "on"]) == 0
+    one, two = _metadata(again), _metadata(tmp_path / "two" / "roadseg.onnx")
+    assert one.pop("flip_average") is False and two.pop("flip_average") is True
+    assert one == two
 
 
 def test_a_bad_ema_decay_is_refused_before_rendering(tmp_path, capsys):
