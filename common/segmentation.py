@@ -34,8 +34,8 @@ META_KEY = "roadmap.segmentation"
 # frame, with border_net.)
 SKY_ROW_STEP = 16
 # the sky margin (degrees above level) of a model whose metadata names none: `s` networks such
-# as run B1 lost no IoU when the rows above it were left out, and the packaged m64 (run KM64)
-# was benchmarked with it
+# as run B1 lost no IoU when the rows above it were left out, and the packaged m64 files (runs
+# KM64 and G2R) were benchmarked with it
 DEFAULT_SKY_MARGIN_DEG = 10.0
 
 

@@ -26,7 +26,7 @@ ARCHS["p16"] = {**ARCHS["s"], "widths": [16, 16, 48, 64]}
 # work. It asks whether a larger network learns more from the same towns (stop 47's GPU run).
 ARCHS["xl"] = {"widths": [32, 48, 128, 192], "depths": [2, 4, 6], "rows": False}
 # Between p16 and xl: xl's extra capacity where it is cheap, at 1/8 and 1/16, on p16's 1/2 and
-# 1/4 widths. m64 is the packaged model's (run KM64, common/models/MODEL_CARD.md); d192 was
+# 1/4 widths. m64 is the packaged model's (run G2R, common/models/MODEL_CARD.md); d192 was
 # trained once (HISTORY.md, 2026-11-28 early morning). One onnxruntime thread at 640x312 on a
 # 2-core AVX2 EPYC, exported as the product exports (the least of 40 passes, 2026-11-27): s
 # 16.4 ms, m64 15.5 ms (112 k parameters), d192 21.8 ms (364 k), xl 51.3 ms.
