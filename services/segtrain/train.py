@@ -504,8 +504,9 @@ STREAM_VAL_FRAMES = 240
 
 def streamed_held_out(args) -> tuple[np.ndarray, np.ndarray]:
     """The held-out frames of a streamed run of --seed (and --stream-junctions, --turn-prob,
-    --synth-share): the stream's first STREAM_VAL_FRAMES, each chunk rendered from (seed, k)
-    alone, in the order train_model holds them (interleaved_halves) -> (frames, labels). A
+    --synth-share): the stream's first frames (STREAM_VAL_FRAMES for a run of
+    STREAM_START_FRAMES or more), each chunk rendered from (seed, k) alone, in the order
+    train_model holds them (interleaved_halves) -> (frames, labels). A
     streamed run trains on what arrived in time, but these it holds out whatever the
     machine, so --export-only --stream calibrates its weights as the run did."""
     # the run starts on the first min(STREAM_START_FRAMES, --frames), whole chunks, and holds
