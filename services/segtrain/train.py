@@ -83,9 +83,9 @@ def train_command(args, cfg) -> int:
     if args.border_frames and args.border_seed == args.seed:
         raise ConfigError(f"--border-seed {args.border_seed}: the border classifier must be "
                           "fitted on towns the network did not train on (another seed)")
-    if getattr(args, "keep_offsets", False) and not args.export_only:
+    if args.keep_offsets and not args.export_only:
         raise ConfigError("--keep-offsets is --export-only's: give --export-only PT")
-    flip = getattr(args, "set_flip_average", None)
+    flip = args.set_flip_average
     if flip is not None and not args.reexport:
         raise ConfigError("--set-flip-average rewrites a file's metadata: give --reexport MODEL")
     if args.reexport:
@@ -412,7 +412,7 @@ def _export_only(args, out: Path, frames: np.ndarray, labels: np.ndarray,
     log = calibrate_and_export(model, x_val, y_val, frames, labels, out,
                                seed=args.seed, frozen_norms=bool(saved.get("frozen_norms")),
                                sky_fraction=top / INPUT_SIZE[1],
-                               offsets=not getattr(args, "keep_offsets", False))
+                               offsets=not args.keep_offsets)
     log.update(_flip_and_border(args, out), weights=str(args.export_only), seed=args.seed,
                junctions=export_junctions(args),
                frames=n_val)
@@ -509,15 +509,10 @@ def streamed_held_out(args) -> tuple[np.ndarray, np.ndarray]:
     train_model holds them (interleaved_halves) -> (frames, labels). A
     streamed run trains on what arrived in time, but these it holds out whatever the
     machine, so --export-only --stream calibrates its weights as the run did."""
-    # the run starts on the first min(STREAM_START_FRAMES, --frames), whole chunks, and holds
-    # out half of them, at most STREAM_VAL_FRAMES (train_model)
+    # the run starts on the first min(STREAM_START_FRAMES, --frames), whole chunks
     chunk = seg_data.CHUNK_FRAMES
-    n_val = min(STREAM_VAL_FRAMES,
-                -(-min(STREAM_START_FRAMES, args.frames) // chunk) * chunk // 2)
-    stream = seg_data.FrameStream(seed=args.seed, input_size=INPUT_SIZE, max_frames=n_val,
-                                  workers=args.workers, turn_prob=args.turn_prob,
-                                  synth_share=args.synth_share,
-                                  junctions=tuple(args.stream_junctions or ("light",)))
+    n_val = streamed_validation_frames(-(-min(STREAM_START_FRAMES, args.frames) // chunk) * chunk)
+    stream = _frame_stream(args, n_val)
     try:
         frames, labels = stream.wait(n_val, timeout_s=30 * 60.0)
     finally:
@@ -529,15 +524,27 @@ def streamed_held_out(args) -> tuple[np.ndarray, np.ndarray]:
     return frames[:n_val][order], labels[:n_val][order]
 
 
+def streamed_validation_frames(n_start: int) -> int:
+    """How many of the first n_start frames a streamed run trains on holds out (the first half
+    of them sets the logit offsets and paint borders, the second validates)."""
+    return min(STREAM_VAL_FRAMES, n_start // 2)
+
+
+def _frame_stream(args, max_frames: int):
+    """The FrameStream of a streamed run's towns (--seed, --workers, --turn-prob,
+    --synth-share, --stream-junctions), its first max_frames."""
+    return seg_data.FrameStream(seed=args.seed, input_size=INPUT_SIZE, max_frames=max_frames,
+                                workers=args.workers, turn_prob=args.turn_prob,
+                                synth_share=args.synth_share,
+                                junctions=tuple(args.stream_junctions or ("light",)))
+
+
 def _train_streamed(args, out: Path, t_start: float) -> int:
     import os
 
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"  # for the render workers (spawned: they read it at import)
-    stream = seg_data.FrameStream(seed=args.seed, input_size=INPUT_SIZE,
-                                  max_frames=args.frames, workers=args.workers,
-                                  turn_prob=args.turn_prob, synth_share=args.synth_share,
-                                  junctions=tuple(args.stream_junctions or ("light",)))
+    stream = _frame_stream(args, args.frames)
     try:
         frames, labels = stream.wait(min(STREAM_START_FRAMES, args.frames), timeout_s=30 * 60.0)
         render_s = time.perf_counter() - t_start
@@ -663,7 +670,7 @@ def train_model(frames, labels, out: Path, *, seed: int, train_s: float,
     dev = torch.device(device)
     rng = np.random.default_rng(seed)
     n_val = (validation_frames(len(frames)) if more is None
-             else min(STREAM_VAL_FRAMES, len(frames) // 2))
+             else streamed_validation_frames(len(frames)))
     if more is not None:  # streamed frames come in chunk order: halves with the same mix
         frames, labels = frames.copy(), labels.copy()
         order = interleaved_halves(n_val)
