@@ -108,7 +108,7 @@ def run(archs: list[str], widths: list[str], *, block: int, rounds: int, passes:
             path = Path(tmp) / f"{len(entries)}.onnx"
             params = export(spec, path, block)
             seg = OnnxSegmenter(path, camera=camera, sky_margin_deg=sky_margin_deg,
-                                flip_average=False, border_net=False)
+                                flip="off", border_net=False)
             entries[name] = {"spec": spec, "parameters": params,
                              "input_rows": seg.input_size[1] - seg.sky_rows}
             segmenters[name] = seg

@@ -2,7 +2,8 @@
 (Karlsruhe Lanelet2 and Argoverse 2 worlds, never trained on) and its speed on one core.
 
     python bench/bench_segmentation.py --out DIR [--quick] [--frames N] [--model M.onnx]
-        [--no-border-net] [--no-flip-average] [--baseline B.onnx [--baseline-borders rule|none]]
+        [--no-border-net] [--flip off|average|alternate]
+        [--baseline B.onnx [--baseline-borders rule|none]]
         -> DIR/segmentation.json
 
 Frames: the simulator's renderer at seeded random poses on the world's routes (30 % facing a stop
@@ -54,7 +55,7 @@ sys.path.insert(0, str(REPO))
 from common.camera import build_ipm_lookup, camera_from_config  # noqa: E402
 from common.classes import NAMES, Cls  # noqa: E402
 from common.config import CameraConfig, RoiConfig, VehicleConfig  # noqa: E402
-from common.segmentation import DEFAULT_MODEL, get_segmenter  # noqa: E402
+from common.segmentation import DEFAULT_MODEL, FLIP_MODES, get_segmenter  # noqa: E402
 from services.demo.bench import cpu_description  # noqa: E402
 from services.segtrain.evaluate import (  # noqa: E402
     CLASSES,
@@ -194,22 +195,22 @@ def _parts_ms(seg, small: np.ndarray) -> dict:
 def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES,
         baseline_path: str | None = None, baseline_borders: str = "model",
         sky_margin_deg: float | None = None, border_net: bool | None = None,
-        flip_average: bool | None = None, seed: int = 1) -> dict:
+        flip: str | None = None, seed: int = 1) -> dict:
     """seed: the draw of held-out frames (poses, cars, vibration) in every world; 1 is the
     benchmark's, another a fresh draw that checks a result found on it. border_net: None, the
     model's learned border classifier if it has one (as the product runs it); False, its
     brightness rule. baseline_borders: how the baseline decides its paint
-    borders: "model" (as the product), "rule" (its brightness rule) or "none". flip_average:
-    None, as the model's metadata asks (as the product runs it); False / True, off / on."""
+    borders: "model" (as the product), "rule" (its brightness rule) or "none". flip: None, as
+    the model's metadata asks (as the product runs it), else one of FLIP_MODES."""
     import onnxruntime
 
     # the rows the product leaves out for render_heldout's camera (None: each model's own)
     sky = {"camera": camera_from_config(CameraConfig()), "sky_margin_deg": sky_margin_deg}
     seg = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, **sky,
-                        border_net=border_net, flip_average=flip_average)
+                        border_net=border_net, flip=flip)
     # the model as the mapping vehicles run it: paint it is unsure of left unknown
     gated = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, **sky,
-                          min_margin=VehicleConfig().paint_min_margin, flip_average=flip_average)
+                          min_margin=VehicleConfig().paint_min_margin, flip=flip)
     borders = {"model": {}, "rule": {"border_net": False},
                "none": {"border_net": False, "refine": {}}}[baseline_borders]
     baseline = (get_segmenter("onnx", model_path=baseline_path, intra_op_threads=1,
@@ -220,7 +221,7 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
         "model": seg.name, "model_bytes": Path(model_path or DEFAULT_MODEL).stat().st_size,
         "refine": seg.refine,  # paint borders re-decided on the image ({}: off)
         "border_net": seg.border_net is not None,  # by the learned classifier instead
-        "flip_average": seg.flip_average,  # the network's logits of the image and its mirror
+        "flip": seg.flip,  # what the network does with the mirror image (FLIP_MODES)
         "sky_margin_deg": seg.sky_margin_deg, "sky_rows": seg.sky_rows,  # rows not segmented
         "python": platform.python_version(), "onnxruntime": onnxruntime.__version__,
         **cpu_description(),  # the speed depends on the vector units as much as on the model
@@ -260,7 +261,7 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
         report["baseline"] = {"model": str(baseline_path), "refine": baseline.refine,
                               "sky_rows": baseline.sky_rows,
                               "border_net": baseline.border_net is not None,
-                              "flip_average": baseline.flip_average,
+                              "flip": baseline.flip,
                               "iou": base_iou,
                               "diff": _diff(report["iou"], base_iou),
                               "diff_ci90": bootstrap_interval(_means_of_draws(paired))}
@@ -331,14 +332,15 @@ def main(argv=None) -> int:
                         help="decide paint borders by the model's learned border classifier "
                              "(default: if it has one, as segmentation.border_net does); "
                              "--no-border-net: by its brightness rule")
-    parser.add_argument("--flip-average", action=argparse.BooleanOptionalAction, default=None,
-                        help="average the network's logits of each image and of its mirror "
-                             "image (default: if the model's metadata asks for it, as "
-                             "segmentation.flip_average does); --no-flip-average: one run")
+    parser.add_argument("--flip", choices=FLIP_MODES, default=None,
+                        help="what the network does with each image's mirror image: off, "
+                             "average (a second pass, averaged) or alternate (one pass, on the "
+                             "image and on its mirror in turn) (default: the model's own, as "
+                             "segmentation.flip does)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     report = run(args.quick, args.model, args.frames, args.baseline, args.baseline_borders,
-                 args.sky_margin_deg, args.border_net, args.flip_average, args.seed)
+                 args.sky_margin_deg, args.border_net, args.flip, args.seed)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "segmentation.json").write_text(json.dumps(report, indent=2))

@@ -106,11 +106,13 @@ class SegmentationConfig:
     # (`refine`): on the benchmark's frames +0.0125 lane-line, +0.012 crosswalk, +0.017
     # stop-line IoU, for 1.3 ms a frame more at p50 (2 ms at p95); false: the rule
     border_net: bool = True
-    # the network also run on the mirror image and the two averaged, when the model's
-    # metadata asks for it (`flip_average`; the packaged model does): on the benchmark's
-    # frames +0.011 mean lane-line IoU, for ~5 ms a frame more (common/models/HISTORY.md);
-    # false: one run a frame
-    flip_average: bool = True
+    # what the network does with the mirror image of a frame: "average" runs it on the image
+    # and on its mirror and averages the two (twice the network's time: +0.011 mean lane-line
+    # IoU on the benchmark's frames); "alternate" runs it once a frame, on the image and on
+    # its mirror in turn (the car localizes as with "average", at one run's cost); "off"
+    # once on the image; empty: the model's own (metadata `flip`, else `flip_average`)
+    # (common/models/HISTORY.md, 2026-11-29 and before)
+    flip: str = ""  # empty: the model's own; else off, average or alternate
 
 
 @dataclass(frozen=True)
@@ -359,6 +361,9 @@ def _validate(cfg: RoadmapConfig) -> None:
         raise ConfigError("camera.width and camera.height must be positive")
     if len(cfg.camera.dist) not in (4, 5, 8):
         raise ConfigError("camera.dist needs 4, 5 or 8 OpenCV coefficients")
+    if cfg.segmentation.flip not in ("", "off", "average", "alternate"):  # FLIP_MODES
+        raise ConfigError("segmentation.flip must be empty (the model's own), off, average or "
+                          f"alternate, got {cfg.segmentation.flip!r}")
     bad = [v for v in cfg.grid.shard_map.values() if not 0 <= v < cfg.grid.shards]
     if bad:
         raise ConfigError(f"grid.shard_map names shards outside [0, {cfg.grid.shards}): {bad}")

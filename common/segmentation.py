@@ -165,7 +165,7 @@ class OnnxSegmenter(Segmenter):
         sky_fraction: float = 0.0,
         camera: cameras.CameraModel | None = None,
         sky_margin_deg: float | None = None,
-        flip_average: bool | None = None,
+        flip: str | None = None,
         name: str | None = None,
     ):
         path = Path(model_path)
@@ -245,11 +245,15 @@ class OnnxSegmenter(Segmenter):
         self.border_net = BorderNet(border_net, intra_op_threads) if border_net else None
         if self.border_net and len(self.priority) != 1:
             raise ConfigError("border_net needs a model with one output head")
-        # the network run on the image and on its mirror image, the mirror's scores mirrored
-        # back and the two averaged (test-time flip averaging): None takes the model's
-        # metadata `flip_average` (off when it has none); twice the network's time
-        self.flip_average = bool(meta.get("flip_average", False) if flip_average is None
-                                 else flip_average)
+        # the mirror image (FLIP_MODES): "average" runs the network on the image and on its
+        # mirror, the mirror's scores mirrored back, and averages the two (test-time flip
+        # averaging; twice the network's time); "alternate" runs it once a call, on the image
+        # and on its mirror in turn; "off" on the image alone. None: the model's own
+        # (model_flip_mode)
+        self.flip = model_flip_mode(meta) if flip is None else flip
+        if self.flip not in FLIP_MODES:
+            raise ConfigError(f"flip must be one of {FLIP_MODES}, got {self.flip!r}")
+        self._mirror_next = False  # "alternate": whether the next call runs on the mirror
 
     def _heads(self, head_map, priority):
         outputs = self._session.get_outputs()
@@ -350,10 +354,16 @@ class OnnxSegmenter(Segmenter):
 
     def run_network(self, x: np.ndarray) -> list[np.ndarray]:
         """The outputs of the heads in `priority` for model input `x` (1, 3, h, w), as
-        `preprocess` gives it; with `flip_average`, the mean of those of `x` and of its mirror
-        image (mirrored back): the network's part of network_labels."""
+        `preprocess` gives it: the network's part of network_labels. With `flip` "average",
+        the mean of those of `x` and of its mirror image (mirrored back); with "alternate",
+        those of `x` on one call and of its mirror image (mirrored back) on the next."""
+        if self.flip == "alternate":
+            mirrored, self._mirror_next = self._mirror_next, not self._mirror_next
+            if mirrored:
+                outs = self._session.run(self.priority, {self._input_name: mirror_columns(x)})
+                return [mirrored_back(o, self.subpixel) for o in outs]
         outs = self._session.run(self.priority, {self._input_name: x})
-        if not self.flip_average:
+        if self.flip != "average":
             return outs
         mirrored = self._session.run(self.priority, {self._input_name: mirror_columns(x)})
         return [mean_with_mirrored(a, b, self.subpixel)
@@ -383,6 +393,16 @@ class OnnxSegmenter(Segmenter):
         if labels.shape != (h, w):
             labels = cv2.resize(labels, (w, h), interpolation=cv2.INTER_NEAREST)
         return labels
+
+
+# what OnnxSegmenter does with the mirror image of a frame (its `flip`)
+FLIP_MODES = ("off", "average", "alternate")
+
+
+def model_flip_mode(meta: dict) -> str:
+    """The flip mode a model's metadata asks for: `flip` if it names one, else "average" where
+    its `flip_average` is true (files before 2026-11-29), else "off"."""
+    return meta.get("flip") or ("average" if meta.get("flip_average") else "off")
 
 
 def session_metadata(session) -> dict:
@@ -771,6 +791,13 @@ def mirror_columns(x: np.ndarray) -> np.ndarray:
     return cv2.flip(flat, 1).reshape(x.shape)
 
 
+def mirrored_back(logits: np.ndarray, s: int = 1) -> np.ndarray:
+    """mirror_logits as a contiguous array (plain float32 logits by OpenCV's flip)."""
+    if s == 1 and logits.dtype == np.float32 and logits.ndim >= 2:
+        return mirror_columns(logits)
+    return np.ascontiguousarray(mirror_logits(logits, s))
+
+
 def mean_with_mirrored(logits: np.ndarray, mirrored: np.ndarray, s: int = 1) -> np.ndarray:
     """The mean of the logits of an image and those of its mirror image (mirror_logits):
     flip averaging. For plain float32 logits by OpenCV (0.09 against 0.22 ms at 6 x 156 x 320,
@@ -855,11 +882,12 @@ def configured_onnx(seg, *, min_margin: float = 0.0, camera=None) -> OnnxSegment
     `camera` (CameraModel), the rows above rays rising `seg.sky_margin_deg` above level (None:
     the model's own margin, else DEFAULT_SKY_MARGIN_DEG; < 0: none) are not segmented
     (OnnxSegmenter's camera and sky_margin_deg). The model's learned border classifier runs
-    if it has one, unless `seg.border_net` is off (then its brightness rule), and so does flip
-    averaging if the model asks for it, unless `seg.flip_average` is off."""
+    if it has one, unless `seg.border_net` is off (then its brightness rule), and the mirror
+    image is used as the model asks (flip averaging or alternation), unless `seg.flip` names
+    another of FLIP_MODES."""
     return get_segmenter("onnx", model_path=seg.model_path,
                          intra_op_threads=seg.intra_op_threads, min_margin=min_margin,
                          camera=camera,
                          sky_margin_deg=None if camera is None else seg.sky_margin_deg,
                          border_net=None if seg.border_net else False,
-                         flip_average=None if seg.flip_average else False)
+                         flip=seg.flip or None)

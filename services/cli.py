@@ -209,10 +209,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write a trained RoadSegNet ONNX file again as this version exports it "
                         "(weights and metadata kept; since 2026-11-25: a dynamic input height, "
                         "for OnnxSegmenter's sky rows) to --out/roadseg.onnx, check it, and stop")
-    p.add_argument("--set-flip-average", choices=["on", "off"], default=None,
-                   help="with --reexport: switch the file's metadata `flip_average` (the "
-                        "runtime's second, mirrored pass) on or off; its logit offsets and "
-                        "border classifier stay as they were fitted (default: kept)")
+    p.add_argument("--set-flip", choices=["off", "average", "alternate"], default=None,
+                   help="with --reexport: set what the runtime does with a frame's mirror "
+                        "image (metadata `flip_average`, and `flip` for alternate): off, "
+                        "average (a second, mirrored pass, the two averaged) or alternate (one "
+                        "pass a frame, on the image and on its mirror in turn); its logit "
+                        "offsets and border classifier stay as they were fitted (default: kept)")
     p.add_argument("--turn-prob", type=float, default=None,
                    help="share of training poses turned 15-90 deg off the route, lane lines "
                         "crossing the view (default: services/segtrain/data.py TURN_PROB)")

@@ -85,11 +85,14 @@ def train_command(args, cfg) -> int:
                           "fitted on towns the network did not train on (another seed)")
     if args.keep_offsets and not args.export_only:
         raise ConfigError("--keep-offsets is --export-only's: give --export-only PT")
-    flip = args.set_flip_average
+    flip = args.set_flip
     if flip is not None and not args.reexport:
-        raise ConfigError("--set-flip-average rewrites a file's metadata: give --reexport MODEL")
+        raise ConfigError("--set-flip rewrites a file's metadata: give --reexport MODEL")
     if args.reexport:
-        updates = {} if flip is None else {"flip_average": flip == "on"}
+        # `flip` is written only for what `flip_average` cannot say, so that "average" and
+        # "off" give the files they gave before the mode existed
+        updates = {} if flip is None else {"flip_average": flip == "average",
+                                           "flip": "alternate" if flip == "alternate" else None}
         logger.info("%s -> %s: %s", args.reexport, out / "roadseg.onnx",
                     reexport_onnx(args.reexport, out / "roadseg.onnx", **updates))
         return 0
@@ -1525,11 +1528,13 @@ def export_onnx(model, path: Path, *, seed: int, block: int = 16) -> None:
 
 def reexport_onnx(src, dst, **updates) -> dict:
     """The RoadSegNet export `src` written again to `dst` by export_onnx (same weights, its
-    metadata kept but for `updates`), checked against `src` on random frames -> {max_abs_diff,
-    argmax_agreement}. For files exported before export_onnx changed (a fixed input height
-    before 2026-11-25), and for a file fitted for one pass that the runtime is to run in two
-    (flip_average=True: run G2 of 2026-11-28, whose offsets and border classifier fitted for
-    one pass localized better in two passes than refitted for two)."""
+    metadata kept but for `updates`; a key updated to None is removed), checked against `src`
+    on random frames -> {max_abs_diff, argmax_agreement}. For files exported before
+    export_onnx changed (a fixed input height before 2026-11-25), and for a file fitted for
+    one pass that the runtime is to run otherwise (flip_average=True: run G2 of 2026-11-28,
+    whose offsets and border classifier fitted for one pass localized better in two passes
+    than refitted for two; flip="alternate": the same file in one pass a frame, on the image
+    and on its mirror in turn, 2026-11-29)."""
     import onnxruntime as ort
 
     from services.segtrain.net import RoadSegNet, load_onnx_weights
@@ -1547,7 +1552,8 @@ def reexport_onnx(src, dst, **updates) -> dict:
     model.export_classes = NUM_CLASSES
     Path(dst).parent.mkdir(parents=True, exist_ok=True)
     export_onnx(model, Path(dst), seed=meta.get("seed", 0))
-    set_metadata(dst, **{k: v for k, v in meta.items() if k != "arch"} | updates)  # its arch
+    kept = {k: v for k, v in (meta | updates).items() if k != "arch" and v is not None}
+    set_metadata(dst, **kept)  # export_onnx wrote its arch
     new = ort.InferenceSession(str(dst), providers=["CPUExecutionProvider"])
     w, h = INPUT_SIZE
     x = np.random.default_rng(0).random((4, 3, h, w), np.float32)

@@ -10,9 +10,11 @@ from common.classes import NUM_CLASSES, Cls
 from common.errors import ConfigError
 from common.segmentation import (
     DEFAULT_MODEL,
+    FLIP_MODES,
     GroundTruthSegmenter,
     OnnxSegmenter,
     get_segmenter,
+    model_flip_mode,
 )
 
 needs_model = pytest.mark.skipif(not DEFAULT_MODEL.is_file(), reason="no packaged model yet")
@@ -269,8 +271,8 @@ def test_configured_segmenter_leaves_out_the_cameras_sky(tmp_path):
 def test_flip_averaging_mirrors_the_mirror_images_scores_back(rng):
     """The scores of the image and of its mirror image, mirrored back, averaged: so those of a
     mirrored image are exactly the mirror of the image's."""
-    plain = OnnxSegmenter(flip_average=False)
-    flip = OnnxSegmenter(flip_average=True)
+    plain = OnnxSegmenter(flip="off")
+    flip = OnnxSegmenter(flip="average")
     image = rng.integers(0, 255, (360, 640, 3), dtype=np.uint8)
     x, mirrored = flip.preprocess(image), flip.preprocess(np.ascontiguousarray(image[:, ::-1]))
     (scores,), (of_mirror,) = flip.run_network(x), flip.run_network(mirrored)
@@ -278,6 +280,32 @@ def test_flip_averaging_mirrors_the_mirror_images_scores_back(rng):
     (a,), (b,) = plain.run_network(x), plain.run_network(mirrored)
     np.testing.assert_allclose(scores, 0.5 * (a + b[..., ::-1]), atol=1e-6)
     assert not np.allclose(a, scores, atol=1e-3)  # the network itself is not symmetric
+
+
+@needs_model
+def test_alternation_runs_the_image_and_its_mirror_in_turn(rng):
+    """flip "alternate": one pass a call, on the image, then on its mirror image with the
+    scores mirrored back, then on the image again; labels as one pass of either gives."""
+    plain = OnnxSegmenter(flip="off")
+    alternate = OnnxSegmenter(flip="alternate")
+    image = rng.integers(0, 255, (360, 640, 3), dtype=np.uint8)
+    x, mirrored = plain.preprocess(image), plain.preprocess(np.ascontiguousarray(image[:, ::-1]))
+    (straight,), (of_mirror,) = plain.run_network(x), plain.run_network(mirrored)
+    calls = [alternate.run_network(x)[0] for _ in range(3)]
+    np.testing.assert_array_equal(calls[0], straight)
+    np.testing.assert_array_equal(calls[1], of_mirror[..., ::-1])
+    assert calls[1].flags.c_contiguous
+    np.testing.assert_array_equal(calls[2], straight)
+    fresh = OnnxSegmenter(flip="alternate")  # the network's labels; the paint borders are
+    first, second = (fresh.network_labels(image)[1] for _ in range(2))  # decided on the image
+    np.testing.assert_array_equal(first, plain.network_labels(image)[1])
+    np.testing.assert_array_equal(
+        second, plain.network_labels(np.ascontiguousarray(image[:, ::-1]))[1][:, ::-1])
+
+
+def test_an_unknown_flip_mode_is_refused():
+    with pytest.raises(ConfigError, match="flip must be one of"):
+        OnnxSegmenter(flip="twice")
 
 
 def test_flip_average_by_opencv_matches_numpy_exactly(rng):
@@ -331,7 +359,7 @@ def test_sub_pixel_logits_mirror_and_score_at_full_resolution(rng):
 
 
 @needs_model
-def test_flip_averaging_follows_the_model_unless_configured_off():
+def test_the_flip_mode_follows_the_model_unless_configured():
     import dataclasses
 
     import onnxruntime as ort
@@ -340,10 +368,18 @@ def test_flip_averaging_follows_the_model_unless_configured_off():
     from common.segmentation import configured_onnx, session_metadata
 
     session = ort.InferenceSession(str(DEFAULT_MODEL), providers=["CPUExecutionProvider"])
-    asks = session_metadata(session).get("flip_average", False)  # what the file asks for
-    assert OnnxSegmenter().flip_average is asks
-    assert not OnnxSegmenter(flip_average=False).flip_average
-    assert OnnxSegmenter(flip_average=True).flip_average
+    asks = model_flip_mode(session_metadata(session))  # what the file asks for
+    assert OnnxSegmenter().flip == asks
+    for mode in FLIP_MODES:
+        assert OnnxSegmenter(flip=mode).flip == mode
     cfg = RoadmapConfig().segmentation
-    assert configured_onnx(cfg).flip_average is asks
-    assert not configured_onnx(dataclasses.replace(cfg, flip_average=False)).flip_average
+    assert configured_onnx(cfg).flip == asks
+    assert configured_onnx(dataclasses.replace(cfg, flip="off")).flip == "off"
+    assert configured_onnx(dataclasses.replace(cfg, flip="alternate")).flip == "alternate"
+
+
+def test_a_models_flip_mode_reads_files_from_before_the_mode():
+    assert model_flip_mode({}) == "off"
+    assert model_flip_mode({"flip_average": False}) == "off"
+    assert model_flip_mode({"flip_average": True}) == "average"
+    assert model_flip_mode({"flip_average": False, "flip": "alternate"}) == "alternate"

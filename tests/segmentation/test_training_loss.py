@@ -232,7 +232,7 @@ def test_bad_steps_and_export_only_are_refused_before_rendering(tmp_path, capsys
     assert "--export-only x.pt: no such file" in capsys.readouterr().err
     assert main(["train-seg", "--out", str(out), "--keep-offsets"]) == 1
     assert "give --export-only PT" in capsys.readouterr().err
-    assert main(["train-seg", "--out", str(out), "--set-flip-average", "on"]) == 1
+    assert main(["train-seg", "--out", str(out), "--set-flip", "alternate"]) == 1
     assert "give --reexport MODEL" in capsys.readouterr().err
     assert main(["train-seg", "--out", str(out), "--no-cache", "--cache-dir", str(out)]) == 1
     assert "--cache-dir with --no-cache: leave one out" in capsys.readouterr().err
@@ -321,7 +321,8 @@ def test_a_run_exported_again_with_its_offsets_and_a_streamed_run_on_its_held_ou
     """--export-only PT --keep-offsets: a run's roadseg.pt, whose head carries its logit
     offsets, exported as that run did, byte for byte; with --stream, calibrated on the
     streamed run's held-out frames (the stream's first chunks, interleaved as train_model
-    holds them); --reexport --set-flip-average switches the runtime's second pass alone."""
+    holds them); --reexport --set-flip sets what the runtime does with the mirror image
+    (metadata `flip_average`, and `flip` for "alternate") and nothing else."""
     from services.cli import build_parser, main
     from services.segtrain.data import SYNTH_SHARE, TURN_PROB, _render_chunk, _sim_available
     from services.segtrain.train import STREAM_VAL_FRAMES, _metadata, streamed_held_out
@@ -352,11 +353,19 @@ def test_a_run_exported_again_with_its_offsets_and_a_streamed_run_on_its_held_ou
     log = json.loads((tmp_path / "streamed" / "export_log.json").read_text())
     assert log["frames"] == 24 and log["flip_average"]
 
-    assert main(["train-seg", "--out", str(tmp_path / "two"), "--reexport", str(again),
-                 "--set-flip-average", "on"]) == 0
-    one, two = _metadata(again), _metadata(tmp_path / "two" / "roadseg.onnx")
-    assert one.pop("flip_average") is False and two.pop("flip_average") is True
-    assert one == two
+    src = again
+    for mode in ("average", "alternate", "off"):  # each re-exported from the one before
+        assert main(["train-seg", "--out", str(tmp_path / mode), "--reexport", str(src),
+                     "--set-flip", mode]) == 0
+        src = tmp_path / mode / "roadseg.onnx"
+    average, alternate, off = (_metadata(tmp_path / m / "roadseg.onnx")
+                               for m in ("average", "alternate", "off"))
+    assert average.pop("flip_average") is True and "flip" not in average
+    assert alternate.pop("flip_average") is False and alternate.pop("flip") == "alternate"
+    assert off.pop("flip_average") is False and "flip" not in off  # the mode removed again
+    original = _metadata(again)
+    assert original.pop("flip_average") is False
+    assert average == alternate == off == original
 
 
 def test_a_bad_ema_decay_is_refused_before_rendering(tmp_path, capsys):
