@@ -215,6 +215,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "average (a second, mirrored pass, the two averaged) or alternate (one "
                         "pass a frame, on the image and on its mirror in turn); its logit "
                         "offsets and border classifier stay as they were fitted (default: kept)")
+    p.add_argument("--add-offsets", default=None, metavar="CLASS=LOGITS,...",
+                   help="with --reexport: add logits to classes' rows of the head's bias, "
+                        "where a run's logit offsets ride (e.g. lane_line=0.4 calls more "
+                        "pixels lane line); road and the markings, by their report names")
     p.add_argument("--turn-prob", type=float, default=None,
                    help="share of training poses turned 15-90 deg off the route, lane lines "
                         "crossing the view (default: services/segtrain/data.py TURN_PROB)")

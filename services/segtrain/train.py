@@ -88,13 +88,17 @@ def train_command(args, cfg) -> int:
     flip = args.set_flip
     if flip is not None and not args.reexport:
         raise ConfigError("--set-flip rewrites a file's metadata: give --reexport MODEL")
+    if args.add_offsets and not args.reexport:
+        raise ConfigError("--add-offsets changes a file's head: give --reexport MODEL")
+    class_offsets(args.add_offsets)  # refused here, before anything is written
     if args.reexport:
         # `flip` is written only for what `flip_average` cannot say, so that "average" and
         # "off" give the files they gave before the mode existed
         updates = {} if flip is None else {"flip_average": flip == "average",
                                            "flip": "alternate" if flip == "alternate" else None}
         logger.info("%s -> %s: %s", args.reexport, out / "roadseg.onnx",
-                    reexport_onnx(args.reexport, out / "roadseg.onnx", **updates))
+                    reexport_onnx(args.reexport, out / "roadseg.onnx",
+                                  offsets=class_offsets(args.add_offsets), **updates))
         return 0
     if args.border_only:
         return _border_only(args, out)
@@ -1526,7 +1530,24 @@ def export_onnx(model, path: Path, *, seed: int, block: int = 16) -> None:
     onnx.save(proto, str(path))
 
 
-def reexport_onnx(src, dst, **updates) -> dict:
+def class_offsets(text: str | None) -> dict[int, float]:
+    """--add-offsets' "lane_line=0.4,crosswalk=-0.2" -> {class id: logits} (road and the
+    markings, by their report names)."""
+    ids = {name: int(c) for c, name in NAMES.items() if c != Cls.NONE}
+    offsets = {}
+    for item in filter(None, (text or "").split(",")):
+        name, sep, value = item.partition("=")
+        try:
+            offsets[ids[name.strip()]] = float(value) if sep else float("nan")
+        except (KeyError, ValueError):
+            raise ConfigError(f"--add-offsets {item!r}: give CLASS=LOGITS, CLASS one of "
+                              f"{sorted(ids)}") from None
+        if not np.isfinite(offsets[ids[name.strip()]]):
+            raise ConfigError(f"--add-offsets {item!r}: give CLASS=LOGITS (a finite number)")
+    return offsets
+
+
+def reexport_onnx(src, dst, offsets: dict[int, float] | None = None, **updates) -> dict:
     """The RoadSegNet export `src` written again to `dst` by export_onnx (same weights, its
     metadata kept but for `updates`; a key updated to None is removed), checked against `src`
     on random frames -> {max_abs_diff, argmax_agreement}. For files exported before
@@ -1534,7 +1555,9 @@ def reexport_onnx(src, dst, **updates) -> dict:
     one pass that the runtime is to run otherwise (flip_average=True: run G2 of 2026-11-28,
     whose offsets and border classifier fitted for one pass localized better in two passes
     than refitted for two; flip="alternate": the same file in one pass a frame, on the image
-    and on its mirror in turn, 2026-11-29)."""
+    and on its mirror in turn, 2026-11-29). `offsets` {class: logits} are added to those
+    classes' rows of the head's bias (where a run's own offsets ride), and the check expects
+    them in the new file's logits."""
     import onnxruntime as ort
 
     from services.segtrain.net import RoadSegNet, load_onnx_weights
@@ -1550,6 +1573,16 @@ def reexport_onnx(src, dst, **updates) -> dict:
     load_onnx_weights(model, src)  # a 6-class head: the curb row starts as none (same output)
     model.eval()
     model.export_classes = NUM_CLASSES
+    import torch
+
+    shift = np.zeros(NUM_CLASSES, np.float32)
+    for cls, logits in (offsets or {}).items():
+        if not Cls.ROAD <= cls < NUM_CLASSES:  # none's row is folded with the curb's
+            raise ConfigError(f"offsets: class {cls} is not one of road and the markings")
+        shift[cls] = logits
+    with torch.no_grad():
+        model.head.bias.view(-1, model.subpixel ** 2)[:NUM_CLASSES] += torch.from_numpy(
+            shift)[:, None]
     Path(dst).parent.mkdir(parents=True, exist_ok=True)
     export_onnx(model, Path(dst), seed=meta.get("seed", 0))
     kept = {k: v for k, v in (meta | updates).items() if k != "arch" and v is not None}
@@ -1560,6 +1593,7 @@ def reexport_onnx(src, dst, **updates) -> dict:
     diffs, agree = [], []
     for frame in x:
         a = sess.run(None, {sess.get_inputs()[0].name: frame[None]})[0]
+        a = a + np.repeat(shift, a.shape[1] // NUM_CLASSES)[None, :, None, None]
         b = new.run(None, {"image": frame[None]})[0]
         diffs.append(float(np.abs(a - b).max()))
         agree.append(float((a.argmax(1) == b.argmax(1)).mean()))

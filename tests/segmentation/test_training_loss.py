@@ -692,3 +692,41 @@ def test_train_model_refuses_top_rows_it_cannot_cut(tmp_path):
         with pytest.raises(ConfigError, match="top rows|do not fit"):
             train_model(frames, labels, tmp_path, seed=0, train_s=1.0, steps=1,
                         crop_hw=crop_hw, top_rows=top_rows)
+
+
+def test_reexport_adds_logit_offsets_to_the_head(tmp_path, capsys):
+    """--reexport --add-offsets lane_line=0.4: the new file's lane-line logits are the old
+    ones + 0.4 and every other class's are the old ones; a class it cannot shift is refused
+    before anything is written."""
+    import onnxruntime as ort
+
+    from common.classes import NUM_CLASSES
+    from services.cli import main
+    from services.segtrain.archs import ARCHS
+    from services.segtrain.data import TRAIN_CLASSES
+    from services.segtrain.net import RoadSegNet
+    from services.segtrain.train import export_onnx
+
+    torch.manual_seed(0)  # a file as the product's are exported: our six classes
+    model = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]).eval()
+    model.export_classes = NUM_CLASSES
+    s_export = str(tmp_path / "roadseg.onnx")
+    export_onnx(model, Path(s_export), seed=0)
+    out = tmp_path / "shifted"
+    assert main(["train-seg", "--out", str(out), "--reexport", s_export, "--add-offsets",
+                 "lane_line=0.4,crosswalk=-0.25"]) == 0
+    x = np.random.default_rng(3).random((1, 3, 64, 640), np.float32)
+    (old,), (new,) = (ort.InferenceSession(str(p)).run(None, {"image": x})
+                      for p in (s_export, out / "roadseg.onnx"))
+    expected = old.copy()
+    expected[:, Cls.LANE_LINE] += 0.4
+    expected[:, Cls.CROSSWALK] -= 0.25
+    np.testing.assert_allclose(new, expected, atol=1e-4)
+    for bad in ("none=1", "lane=0.4", "lane_line", "lane_line=nan"):
+        assert main(["train-seg", "--out", str(tmp_path / "bad"), "--reexport", s_export,
+                     "--add-offsets", bad]) == 1
+        assert "--add-offsets" in capsys.readouterr().err
+    assert main(["train-seg", "--out", str(tmp_path / "bad"), "--add-offsets",
+                 "lane_line=0.4"]) == 1
+    assert "give --reexport MODEL" in capsys.readouterr().err
+    assert not any((tmp_path / "bad").iterdir())  # nothing written
