@@ -18,6 +18,12 @@ from common.errors import ConfigError
 ENV_PREFIX = "ROADMAP_"
 
 
+# what the segmenter does with the mirror image of a frame (SegmentationConfig.flip,
+# common.segmentation.OnnxSegmenter's `flip`, train-seg --set-flip): one pass on the image,
+# two passes averaged, or one pass a frame on the image and on its mirror in turn
+FLIP_MODES = ("off", "average", "alternate")
+
+
 @dataclass(frozen=True)
 class BusConfig:
     """How a process reaches Zenoh (a router's client by default; multicast scouting always off)."""
@@ -112,7 +118,7 @@ class SegmentationConfig:
     # its mirror in turn (the car localizes as with "average", at one run's cost); "off"
     # once on the image; empty: the model's own (metadata `flip`, else `flip_average`)
     # (common/models/HISTORY.md, 2026-11-29 and before)
-    flip: str = ""  # empty: the model's own; else off, average or alternate
+    flip: str = ""  # empty: the model's own; else off, average or alternate (FLIP_MODES)
 
 
 @dataclass(frozen=True)
@@ -361,9 +367,9 @@ def _validate(cfg: RoadmapConfig) -> None:
         raise ConfigError("camera.width and camera.height must be positive")
     if len(cfg.camera.dist) not in (4, 5, 8):
         raise ConfigError("camera.dist needs 4, 5 or 8 OpenCV coefficients")
-    if cfg.segmentation.flip not in ("", "off", "average", "alternate"):  # FLIP_MODES
-        raise ConfigError("segmentation.flip must be empty (the model's own), off, average or "
-                          f"alternate, got {cfg.segmentation.flip!r}")
+    if cfg.segmentation.flip not in ("", *FLIP_MODES):
+        raise ConfigError(f"segmentation.flip must be empty (the model's own) or one of "
+                          f"{', '.join(FLIP_MODES)}, got {cfg.segmentation.flip!r}")
     bad = [v for v in cfg.grid.shard_map.values() if not 0 <= v < cfg.grid.shards]
     if bad:
         raise ConfigError(f"grid.shard_map names shards outside [0, {cfg.grid.shards}): {bad}")

@@ -17,6 +17,7 @@ from threadpoolctl import ThreadpoolController
 
 from common import camera as cameras
 from common.classes import NUM_CLASSES, Cls
+from common.config import FLIP_MODES
 from common.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -393,10 +394,6 @@ class OnnxSegmenter(Segmenter):
         if labels.shape != (h, w):
             labels = cv2.resize(labels, (w, h), interpolation=cv2.INTER_NEAREST)
         return labels
-
-
-# what OnnxSegmenter does with the mirror image of a frame (its `flip`)
-FLIP_MODES = ("off", "average", "alternate")
 
 
 def model_flip_mode(meta: dict) -> str:

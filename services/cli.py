@@ -9,7 +9,7 @@ import importlib
 import logging
 import sys
 
-from common.config import load_config, to_toml
+from common.config import FLIP_MODES, load_config, to_toml
 from common.errors import RoadmapError
 from common.log import configure_logging
 from services.segtrain.archs import ARCHS
@@ -209,7 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write a trained RoadSegNet ONNX file again as this version exports it "
                         "(weights and metadata kept; since 2026-11-25: a dynamic input height, "
                         "for OnnxSegmenter's sky rows) to --out/roadseg.onnx, check it, and stop")
-    p.add_argument("--set-flip", choices=["off", "average", "alternate"], default=None,
+    p.add_argument("--set-flip", choices=FLIP_MODES, default=None,
                    help="with --reexport: set what the runtime does with a frame's mirror "
                         "image (metadata `flip_average`, and `flip` for alternate): off, "
                         "average (a second, mirrored pass, the two averaged) or alternate (one "

@@ -90,15 +90,15 @@ def train_command(args, cfg) -> int:
         raise ConfigError("--set-flip rewrites a file's metadata: give --reexport MODEL")
     if args.add_offsets and not args.reexport:
         raise ConfigError("--add-offsets changes a file's head: give --reexport MODEL")
-    class_offsets(args.add_offsets)  # refused here, before anything is written
+    offsets = class_offsets(args.add_offsets)  # refused here, before anything is written
     if args.reexport:
         # `flip` is written only for what `flip_average` cannot say, so that "average" and
         # "off" give the files they gave before the mode existed
         updates = {} if flip is None else {"flip_average": flip == "average",
                                            "flip": "alternate" if flip == "alternate" else None}
         logger.info("%s -> %s: %s", args.reexport, out / "roadseg.onnx",
-                    reexport_onnx(args.reexport, out / "roadseg.onnx",
-                                  offsets=class_offsets(args.add_offsets), **updates))
+                    reexport_onnx(args.reexport, out / "roadseg.onnx", offsets=offsets,
+                                  **updates))
         return 0
     if args.border_only:
         return _border_only(args, out)
@@ -1536,14 +1536,15 @@ def class_offsets(text: str | None) -> dict[int, float]:
     ids = {name: int(c) for c, name in NAMES.items() if c != Cls.NONE}
     offsets = {}
     for item in filter(None, (text or "").split(",")):
-        name, sep, value = item.partition("=")
+        name, _, value = item.partition("=")
         try:
-            offsets[ids[name.strip()]] = float(value) if sep else float("nan")
+            cls, logits = ids[name.strip()], float(value)
         except (KeyError, ValueError):
             raise ConfigError(f"--add-offsets {item!r}: give CLASS=LOGITS, CLASS one of "
                               f"{sorted(ids)}") from None
-        if not np.isfinite(offsets[ids[name.strip()]]):
+        if not np.isfinite(logits):
             raise ConfigError(f"--add-offsets {item!r}: give CLASS=LOGITS (a finite number)")
+        offsets[cls] = logits
     return offsets
 
 
@@ -1559,6 +1560,7 @@ def reexport_onnx(src, dst, offsets: dict[int, float] | None = None, **updates) 
     classes' rows of the head's bias (where a run's own offsets ride), and the check expects
     them in the new file's logits."""
     import onnxruntime as ort
+    import torch
 
     from services.segtrain.net import RoadSegNet, load_onnx_weights
 
@@ -1573,8 +1575,6 @@ def reexport_onnx(src, dst, offsets: dict[int, float] | None = None, **updates) 
     load_onnx_weights(model, src)  # a 6-class head: the curb row starts as none (same output)
     model.eval()
     model.export_classes = NUM_CLASSES
-    import torch
-
     shift = np.zeros(NUM_CLASSES, np.float32)
     for cls, logits in (offsets or {}).items():
         if not Cls.ROAD <= cls < NUM_CLASSES:  # none's row is folded with the curb's
