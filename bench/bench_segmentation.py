@@ -339,6 +339,11 @@ def main(argv=None) -> int:
                              "segmentation.flip does)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    if not heldout_worlds():  # a JSON of nulls would read as a result
+        logger.error("no held-out worlds under %s (Lanelet2 Karlsruhe, Argoverse 2 logs): put "
+                     "the shared data at ../shared/data beside the repository or set "
+                     "ROADMAP_SHARED_DATA; nothing written", SHARED)
+        return 2
     report = run(args.quick, args.model, args.frames, args.baseline, args.baseline_borders,
                  args.sky_margin_deg, args.border_net, args.flip, args.seed)
     out = Path(args.out)
