@@ -108,6 +108,39 @@ def _latency_entry(result: dict) -> dict:
     return entry
 
 
+# what bench_localizer's accuracy runs report per drive (accuracy/localization.json: the mean
+# of each over the drive's frames), in the order comparisons print them
+LOCALIZATION_METRICS = ("x_m", "y_m", "yaw_deg")
+
+
+def paired_comparison(a: dict[int, dict], b: dict[int, dict]) -> dict:
+    """Two settings' drives paired by seed: `a`, `b` map seed -> {metric: mean error} (the
+    LOCALIZATION_METRICS). Over the seeds both have: each side's mean of each metric, b's
+    relative difference b / a - 1, and the paired t of b - a (mean difference over its
+    standard error; None with fewer than two pairs or where every pair is equal), with the
+    per-seed values. Drives of one seed share the world, route and sensor noise, so pairing
+    takes the seeds' own spread (0.03-0.08 m a drive here) out of the difference."""
+    seeds = sorted(set(a) & set(b))
+    out = {"paired_seeds": seeds, "a": {}, "b": {}, "b_vs_a": {}, "t": {},
+           "per_seed": {"a": {s: a[s] for s in seeds}, "b": {s: b[s] for s in seeds}}}
+    for m in LOCALIZATION_METRICS:
+        va = [float(a[s][m]) for s in seeds]
+        vb = [float(b[s][m]) for s in seeds]
+        mean_a = sum(va) / len(va) if seeds else None
+        mean_b = sum(vb) / len(vb) if seeds else None
+        out["a"][m], out["b"][m] = mean_a, mean_b
+        out["b_vs_a"][m] = mean_b / mean_a - 1 if seeds and mean_a else None
+        d = [y - x for x, y in zip(va, vb, strict=True)]
+        t = None
+        if len(d) >= 2:
+            mean_d = sum(d) / len(d)
+            var = sum((x - mean_d) ** 2 for x in d) / (len(d) - 1)
+            if var > 0:
+                t = mean_d / (var / len(d)) ** 0.5
+        out["t"][m] = t
+    return out
+
+
 def environment() -> dict:
     try:
         import onnxruntime
