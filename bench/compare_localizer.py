@@ -109,13 +109,15 @@ def compare(out: Path, *, world: str, km: float, seeds: list[int], common: list[
     check_settings(out, {"world": world, "km": km, "settings": sides})
     for side in sides:
         (out / side).mkdir(parents=True, exist_ok=True)
+    def drive(task):
+        side, seed = task
+        run_dir = out / side / f"s{seed}"
+        return run_drive(run_dir, drive_command(run_dir, world=world, km=km, seed=seed,
+                                                sets=sides[side]))
+
     tasks = [(side, seed) for seed in seeds for side in sides]
     with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
-        results = list(pool.map(
-            lambda t: run_drive(out / t[0] / f"s{t[1]}",
-                                drive_command(out / t[0] / f"s{t[1]}", world=world, km=km,
-                                              seed=t[1], sets=sides[t[0]])),
-            tasks))
+        results = list(pool.map(drive, tasks))
     per_side = {side: {} for side in sides}
     failed = []
     for (side, seed), res in zip(tasks, results, strict=True):
@@ -134,7 +136,8 @@ def summary(report: dict) -> str:
     lines = [f"{len(report['paired_seeds'])} drives paired ({report['world']}, {report['km']} km)"]
     if not report["paired_seeds"]:
         lines.append("  no seed finished on both sides")
-    for m in LOCALIZATION_METRICS if report["paired_seeds"] else ():
+        return "\n".join(lines)
+    for m in LOCALIZATION_METRICS:
         t = report["t"][m]
         lines.append(f"  {m:8s} a {report['a'][m]:.4f}  b {report['b'][m]:.4f}  "
                      f"b vs a {100 * report['b_vs_a'][m]:+.1f} %  "

@@ -60,6 +60,7 @@ def test_same_setting_twice_reads_equal_and_another_differs(tmp_path):
     assert same["failed"] == [] and same["paired_seeds"] == [1]
     for m in LOCALIZATION_METRICS:
         assert same["b_vs_a"][m] == 0.0 and 0 < same["a"][m] < 1.0
+    assert tool.summary(same).count("b vs a +0.0 %") == len(LOCALIZATION_METRICS)
     report = json.loads((tmp_path / "same" / "compare.json").read_text())
     assert report["settings"]["b"] == ["localizer.max_points=700"]
     log = tmp_path / "same" / "a" / "s1.log"
@@ -82,4 +83,5 @@ def test_a_failing_drive_is_reported_not_paired(tmp_path):
                           b=["localizer.no_such_key=1"], jobs=2)
     assert report["failed"] == [{"side": "b", "seed": 1}]
     assert report["paired_seeds"] == []
+    assert "no seed finished on both sides" in tool.summary(report)
     assert "no_such_key" in (tmp_path / "b" / "s1.log").read_text()
