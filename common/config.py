@@ -115,8 +115,9 @@ class SegmentationConfig:
     # what the network does with the mirror image of a frame: "average" runs it on the image
     # and on its mirror and averages the two (twice the network's time: +0.011 mean lane-line
     # IoU on the benchmark's frames); "alternate" runs it once a frame, on the image and on
-    # its mirror in turn (the car localizes as with "average", at one run's cost); "off"
-    # once on the image; empty: the model's own (metadata `flip`, else `flip_average`)
+    # its mirror in turn (one run's cost; the car's mean errors 2-3 % above "average"'s over
+    # 36 Karlsruhe drives, p95 14.4-15.1 ms on the AMX Xeon); "off" once on the image (the car
+    # 6-9 % behind "average"); empty: the model's own (metadata `flip`, else `flip_average`)
     # (common/models/HISTORY.md, 2026-11-29 and before)
     flip: str = ""  # empty: the model's own; else off, average or alternate (FLIP_MODES)
 
