@@ -22,6 +22,8 @@ ENV_PREFIX = "ROADMAP_"
 # common.segmentation.OnnxSegmenter's `flip`, train-seg --set-flip): one pass on the image,
 # two passes averaged, or one pass a frame on the image and on its mirror in turn
 FLIP_MODES = ("off", "average", "alternate")
+# segmentation.kind: the packaged ONNX model, or the simulator's corrupted true labels
+SEGMENTER_KINDS = ("onnx", "truth")
 
 
 @dataclass(frozen=True)
@@ -75,8 +77,7 @@ class RoiConfig:
 class DemoConfig:
     """`roadmap demo` / `roadmap up`: drive lengths, segmenter, time limits of the local fleet."""
 
-    segmenter: str = "truth"  # "truth" (corrupted true labels) or "onnx" (needs rendered images)
-    images: bool = False  # render camera frames for the mapping drives (slow on 2 cores)
+    images: bool = False  # render camera frames for every drive even with segmentation.kind truth
     max_km: float = 0.4  # length of each simulated drive
     small_max_km: float = 0.2  # --small (the localizer needs ~100 m to converge)
     drives: int = 1  # mapping drives per vehicle
@@ -94,9 +95,12 @@ class DemoConfig:
 
 @dataclass(frozen=True)
 class SegmentationConfig:
-    """Which segmenter runs on camera frames (common.segmentation.get_segmenter)."""
+    """Which segmenter the mapping vehicles and the production car run on camera frames
+    (common.segmentation.segmenter_for), and how the ONNX one runs."""
 
-    kind: str = "onnx"  # "onnx" (the packaged model or model_path) | "truth" (simulated logs)
+    # "truth": the simulator's corrupted true labels (simulated logs); "onnx": the packaged
+    # model (or model_path) on rendered frames (the demo then renders every drive's images)
+    kind: str = "truth"
     model_path: str = ""  # empty: common/models/roadseg.onnx shipped with the package
     intra_op_threads: int = 1
     # rows above the rays that rise this many degrees above level (from the camera's
@@ -105,7 +109,7 @@ class SegmentationConfig:
     # common.segmentation.DEFAULT_SKY_MARGIN_DEG. 10: the top 48 of 360 rows of the default
     # camera, 2.6 ms a frame less for an `s` network, its IoU moved by 0.0015 or less; a
     # network whose coarsest stage reads the whole frame (m64) asks for every row
-    # (common/models/HISTORY.md)
+    # (training/HISTORY.md)
     sky_margin_deg: float | None = None  # empty: the model's own, else 10 degrees
     # paint borders decided by the model's learned border classifier (metadata `border_net`,
     # common.segmentation.BorderNet), if it has one, instead of its brightness rule
@@ -118,7 +122,7 @@ class SegmentationConfig:
     # its mirror in turn (one run's cost; the car's mean errors 2-3 % above "average"'s over
     # 36 Karlsruhe drives, p95 14.4-15.1 ms on the AMX Xeon); "off" once on the image (the car
     # 6-9 % behind "average"); empty: the model's own (metadata `flip`, else `flip_average`)
-    # (common/models/HISTORY.md, 2026-11-29 and before)
+    # (training/HISTORY.md, 2026-11-29 and before)
     flip: str = ""  # empty: the model's own; else off, average or alternate (FLIP_MODES)
 
 
@@ -127,7 +131,7 @@ class LocalizerConfig:
     """User-end localizer: map access, point thinning, ICP, EKF, initialization."""
 
     map_codec: str = "contour"  # "contour" (compressed tiles) | "raw" (uncompressed, comparison)
-    segmenter: str = "truth"  # "truth" (simulated logs: corrupted true labels) | "onnx"
+    truth_seed: int = 1  # GroundTruthSegmenter corruption seed (another than the fleet's)
     # "onnx": as vehicle.paint_min_margin, for ICP's points; 0: off (Karlsruhe 0.6 km drives,
     # seeds 1 / 2: 1 and 2 logits did not localize better than 0)
     paint_min_margin: float = 0.0  # logits a marking pixel's class must lead by to be a point
@@ -368,6 +372,9 @@ def _validate(cfg: RoadmapConfig) -> None:
         raise ConfigError("camera.width and camera.height must be positive")
     if len(cfg.camera.dist) not in (4, 5, 8):
         raise ConfigError("camera.dist needs 4, 5 or 8 OpenCV coefficients")
+    if cfg.segmentation.kind not in SEGMENTER_KINDS:
+        raise ConfigError(f"segmentation.kind must be one of {', '.join(SEGMENTER_KINDS)}, "
+                          f"got {cfg.segmentation.kind!r}")
     if cfg.segmentation.flip not in ("", *FLIP_MODES):
         raise ConfigError(f"segmentation.flip must be empty (the model's own) or one of "
                           f"{', '.join(FLIP_MODES)}, got {cfg.segmentation.flip!r}")

@@ -19,7 +19,7 @@ exactly (every cell whose centre lies within width/2 of the polyline), so a 2-ce
 (2 -> 3 cells, 4 -> 5): its lines came back up to 50 % fat, which pulled ICP towards the wide side
 of a line. contour/1 tiles (magic RMC1) still decode. This keeps per-class
 precision/recall at 0.1 m tolerance >= 0.97 against the source raster (measured >= 0.999 on
-merged noisy maps: bench/bench_codec.py) at 7-8 KB per km of road.
+merged noisy maps: services/bench/codec.py) at 7-8 KB per km of road.
 """
 
 import lzma

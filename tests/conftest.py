@@ -78,10 +78,10 @@ def s_export(tmp_path_factory) -> str:
     the --init, --teacher and --prune file of the training tests, which check what the commands
     do with such a file whatever network the product packages (common/models/roadseg.onnx)."""
     torch = pytest.importorskip("torch", reason="training tests need the .[train] extra (torch)")
-    from services.segtrain.archs import ARCHS
-    from services.segtrain.data import TRAIN_CLASSES
-    from services.segtrain.net import RoadSegNet
-    from services.segtrain.train import export_onnx
+    from training.archs import ARCHS
+    from training.data import TRAIN_CLASSES
+    from training.net import RoadSegNet
+    from training.train import export_onnx
 
     torch.manual_seed(0)
     model = RoadSegNet(num_classes=TRAIN_CLASSES, **ARCHS["s"]).eval()

@@ -39,10 +39,10 @@ def test_deploy_advanced_config_lists_the_current_defaults():
 
 
 def test_demo_checks_the_configured_segmentation_model_before_driving(tmp_path):
-    """`demo.segmenter="onnx"` runs segmentation.model_path: a missing file stops the demo at once
+    """`segmentation.kind="onnx"` runs segmentation.model_path: a missing file stops the demo at once
     (exit 1, one line), instead of the packaged model being checked and the fleet failing later."""
     res = roadmap("demo", "--small", "--out", str(tmp_path / "out"),
-                  "--set", 'demo.segmenter="onnx"',
+                  "--set", 'segmentation.kind="onnx"',
                   "--set", f'segmentation.model_path="{tmp_path / "missing.onnx"}"', timeout=60)
     assert res.returncode == 1, res.stderr[-2000:]
     assert "segmentation model not found" in res.stderr and "missing.onnx" in res.stderr

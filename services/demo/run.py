@@ -52,9 +52,9 @@ class DemoRun:
         cfg = fleet_config(cfg, args.shards)
         if args.vehicles < 1 or args.shards < 1:
             raise ConfigError("roadmap demo needs --vehicles >= 1 and --shards >= 1")
-        if cfg.demo.segmenter not in ("truth", "onnx"):
-            raise ConfigError(f"demo.segmenter must be truth or onnx, got {cfg.demo.segmenter!r}")
         self.args, self.cfg, self.d = args, cfg, cfg.demo
+        self.kind = cfg.segmentation.kind  # the fleet's and the car's segmenter
+        self.onnx = self.kind == "onnx"  # the model segments rendered frames
         self.out = Path(args.out).resolve()
         self.t0 = time.monotonic()
         self.stage_ms: dict[str, float] = {}
@@ -75,7 +75,7 @@ class DemoRun:
 
     def run(self) -> dict:
         self._prepare_out()
-        if self.d.segmenter == "onnx":  # fail now, not after the drives, if the model is missing
+        if self.onnx:  # fail now, not after the drives, if the model is missing
             self._segmenter()
         self.world = self.step("load world", self._load_world)
         logs = self.step("simulate drives", self._simulate)
@@ -114,7 +114,7 @@ class DemoRun:
     def _simulate(self) -> dict:
         sim = _require("services.sim.simulate", "the simulator (services.sim.simulate)")
         drives, seed, m = self.out / "drives", self.args.seed, self.args.vehicles
-        kw = {"images": self.d.images or self.d.segmenter == "onnx", "max_km": self.max_km}
+        kw = {"images": self.d.images or self.onnx, "max_km": self.max_km}
         logs = {}
         if self.args.scenario == "repaint":
             worlds = _require("services.sim.worlds", "the simulator (services.sim.worlds)")
@@ -132,7 +132,7 @@ class DemoRun:
         world_now = self.world_after or self.world
         logs["production"] = sim.simulate_drives(
             world_now, drives / "production", vehicles=1, drives=1, profile="production",
-            seed=seed + 1000, images=self.d.segmenter == "onnx", max_km=self.max_km)[0]
+            seed=seed + 1000, images=self.onnx, max_km=self.max_km)[0]
         logger.info("drive logs: %d mapping, %d after repaint, 1 production",
                     len(logs["mapping"]), len(logs.get("after", [])))
         return logs
@@ -169,8 +169,7 @@ class DemoRun:
 
     def _start_vehicle(self, sup: Supervisor, log: Path) -> str:
         name = f"vehicle-{log.parent.name}-{log.name}"
-        sup.start_vehicle(name, log, vehicle_id=log.name, state=self.out / "run" / name,
-                          extra=["--segmenter", self.d.segmenter])
+        sup.start_vehicle(name, log, vehicle_id=log.name, state=self.out / "run" / name)
         return name
 
     def _wait_vehicles(self, sup: Supervisor, names: list[str]) -> None:
@@ -402,7 +401,7 @@ class DemoRun:
                 inter[c] += np.sum((pred == c) & (truth == c))
                 union[c] += np.sum((pred == c) | (truth == c))
         names = {2: "lane_line", 3: "stop_line", 4: "crosswalk", 5: "ground_sign"}
-        return {"model": getattr(seg, "name", self.d.segmenter),
+        return {"model": seg.name,
                 "iou": {n: (float(inter[c] / union[c]) if n_true[c] else None)
                         for c, n in names.items()},
                 "ms_p50": float(np.percentile(ms, 50)) if ms else None,
@@ -410,15 +409,10 @@ class DemoRun:
                 "frames": len(ms)}
 
     def _segmenter(self, camera=None):
-        """The segmenter the fleet runs: the configured ONNX model (segmentation.model_path, the
-        packaged one when empty; with the `camera`, its sky rows left out as the vehicles leave
-        them) or the corrupted ground truth."""
-        from common.segmentation import configured_onnx, get_segmenter
+        """The segmenter the fleet runs (common.segmentation.segmenter_for, the vehicles' role)."""
+        from common.segmentation import segmenter_for
 
-        if self.d.segmenter == "truth":
-            return get_segmenter("truth")
-        return configured_onnx(self.cfg.segmentation,
-                               min_margin=self.cfg.vehicle.paint_min_margin, camera=camera)
+        return segmenter_for(self.cfg, "vehicle", camera=camera)
 
     def _mapping_section(self) -> dict:
         s = self.vehicle_summaries
@@ -436,7 +430,7 @@ class DemoRun:
         return {"pose_error_m": agg("pose_error_m"),
                 "outage_pose_error_m": agg("outage_pose_error_m"),
                 "odometry_only_error_m": agg("odometry_only_error_m"), "frames": sum(frames),
-                "vehicles": len(s), "segmenter": self.d.segmenter}
+                "vehicles": len(s), "segmenter": self.kind}
 
     def _pipeline(self, stats: dict) -> dict:
         v = self.vehicle_summaries
@@ -462,7 +456,7 @@ class DemoRun:
         a = self.args
         return {"seed": a.seed, "vehicles": a.vehicles, "shards": a.shards, "scenario": a.scenario,
                 "chaos": a.chaos, "small": a.small, "max_km_per_drive": self.max_km,
-                "segmenter": self.d.segmenter, "images": self.d.images,
+                "segmenter": self.kind, "images": self.d.images,
                 "chaos_events": self.chaos_events, "tile_versions": t["versions"],
                 "router": self.router_endpoint}
 
@@ -543,13 +537,9 @@ def _paste_within(mosaic, fetched: dict) -> np.ndarray:
 
 
 def fleet_config(cfg: RoadmapConfig, shards: int) -> RoadmapConfig:
-    """The config every process of the fleet gets: grid.shards = the number of shards started,
-    and the production car uses the fleet's segmenter (demo.segmenter)."""
-    cfg = dataclasses.replace(cfg, grid=dataclasses.replace(cfg.grid, shards=shards))
-    if hasattr(cfg, "localizer"):
-        loc = dataclasses.replace(cfg.localizer, segmenter=cfg.demo.segmenter)
-        cfg = dataclasses.replace(cfg, localizer=loc)
-    return cfg
+    """The config every process of the fleet gets: grid.shards = the number of shards started
+    (the fleet and the production car run the same segmentation.kind)."""
+    return dataclasses.replace(cfg, grid=dataclasses.replace(cfg.grid, shards=shards))
 
 
 def _has_files(path: Path) -> bool:
@@ -653,12 +643,11 @@ def _up_vehicles(sup: Supervisor, args, cfg: RoadmapConfig, out: Path) -> list[s
     sim = _require("services.sim.simulate", "the simulator (services.sim.simulate)")
     world = worlds.load_world(args.world, seed=args.seed)
     logs = sim.simulate_drives(world, out / "drives" / "up", vehicles=args.vehicles, drives=1,
-                               profile="mapping", seed=args.seed, images=cfg.demo.images,
+                               profile="mapping", seed=args.seed, images=cfg.demo.images or cfg.segmentation.kind == "onnx",
                                max_km=cfg.demo.max_km)
     names = []
     for log in logs:
         name = f"vehicle-{log.name}"
-        sup.start_vehicle(name, log, vehicle_id=log.name, state=out / "run" / name,
-                          extra=["--segmenter", cfg.demo.segmenter])
+        sup.start_vehicle(name, log, vehicle_id=log.name, state=out / "run" / name)
         names.append(name)
     return names

@@ -116,7 +116,7 @@ class _FrameSource:
     """Frame i -> ground points (vehicle frame), classes and attitude jacobians: segment, IPM."""
 
     def __init__(self, log: DriveLog, cfg):
-        from common.segmentation import configured_onnx, get_segmenter
+        from common.segmentation import segmenter_for
 
         self.log = log
         lc, roi = cfg.localizer, cfg.roi
@@ -126,12 +126,9 @@ class _FrameSource:
         self.ipm = FramePoints(
             log.meta.camera, x_min_m=roi.x_min_m, length_m=roi.length_m, width_m=roi.width_m
         )
-        if lc.segmenter == "truth":
-            self.segmenter = get_segmenter("truth", seed=1)
-        else:
-            self.segmenter = configured_onnx(cfg.segmentation, min_margin=lc.paint_min_margin,
-                                             camera=log.meta.camera)
-        self.segmenter_name = getattr(self.segmenter, "name", lc.segmenter)
+        self.segmenter = segmenter_for(cfg, "localizer", camera=log.meta.camera,
+                                       images=not len(log) or log.image(0) is not None)
+        self.segmenter_name = self.segmenter.name
 
     def points(self, i: int):
         truth = self.log.labels(i)

@@ -21,7 +21,7 @@ from common.config import RoadmapConfig, to_toml
 from common.drivelog import DriveLog
 from common.grid import owner_of_tile
 from common.messages import GridPatch, IngestAck, IngestBatch
-from common.segmentation import GroundTruthSegmenter, configured_onnx
+from common.segmentation import segmenter_for
 from services.vehicle.estimator import PoseEstimator, dead_reckon
 from services.vehicle.mapper import VehicleMapper
 from services.vehicle.outbox import Outbox
@@ -31,8 +31,8 @@ logger = logging.getLogger(__name__)
 STAGES = ("segmentation", "ipm", "pose_graph", "voting", "outbox")
 
 
-def build_mapper(log: DriveLog, vehicle: str, cfg: RoadmapConfig, segmenter_kind: str | None):
-    """The mapper for one drive log: its camera, the chosen segmenter, the configured estimator."""
+def build_mapper(log: DriveLog, vehicle: str, cfg: RoadmapConfig):
+    """The mapper for one drive log: its camera, the configured segmenter and estimator."""
     v = cfg.vehicle
     estimator = PoseEstimator(
         settle_lag_s=v.settle_lag_s, max_wait_s=v.max_wait_s, calib_window_s=v.calib_window_s
@@ -41,7 +41,8 @@ def build_mapper(log: DriveLog, vehicle: str, cfg: RoadmapConfig, segmenter_kind
         vehicle=vehicle,
         traversal=log.meta.traversal,
         camera=log.meta.camera,
-        segmenter=_segmenter(log, cfg, segmenter_kind),
+        segmenter=segmenter_for(cfg, "vehicle", camera=log.meta.camera,
+                                images=not len(log) or log.image(0) is not None),
         roi_x_min_m=cfg.roi.x_min_m,
         roi_length_m=min(cfg.roi.length_m, v.max_range_m - cfg.roi.x_min_m),
         roi_width_m=cfg.roi.width_m,
@@ -50,16 +51,6 @@ def build_mapper(log: DriveLog, vehicle: str, cfg: RoadmapConfig, segmenter_kind
         ipm_stride=v.ipm_stride,
     )
 
-
-def _segmenter(log: DriveLog, cfg: RoadmapConfig, kind: str | None):
-    kind = kind or cfg.segmentation.kind
-    if kind == "onnx" and len(log) and log.image(0) is None:
-        logger.warning("log has no camera images: using the ground-truth segmenter")
-        kind = "truth"
-    if kind == "truth":
-        return GroundTruthSegmenter(seed=cfg.vehicle.truth_seed)
-    return configured_onnx(cfg.segmentation, min_margin=cfg.vehicle.paint_min_margin,
-                           camera=log.meta.camera)
 
 
 # -- replay ------------------------------------------------------------------------------------
@@ -288,7 +279,7 @@ def main(args, cfg: RoadmapConfig) -> int:
     state.mkdir(parents=True, exist_ok=True)
     (state / "config.toml").write_text(to_toml(cfg))
     stop = stop_event()
-    mapper = build_mapper(log, vehicle, cfg, args.segmenter)
+    mapper = build_mapper(log, vehicle, cfg)
     outbox = Outbox(state)
     sealed = outbox.sealed(log.meta.traversal)
     if sealed:

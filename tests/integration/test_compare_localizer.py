@@ -1,6 +1,6 @@
-"""bench/compare_localizer.py: two settings of the car on the same drives, paired by seed
+"""services/bench/compare_localizer.py: two settings of the car on the same drives, paired by seed
 (real bench_localizer runs: a local router and a localizer node per drive, on a short town
-drive), and the paired statistics it reports (services.demo.bench.paired_comparison)."""
+drive), and the paired statistics it reports (services.bench.runner.paired_comparison)."""
 
 import importlib.util
 import json
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from services.demo.bench import LOCALIZATION_METRICS, paired_comparison
+from services.bench.runner import LOCALIZATION_METRICS, paired_comparison
 
 pytestmark = pytest.mark.integration
 

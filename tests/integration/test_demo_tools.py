@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from services.demo import bench
+from services.bench import runner as bench
 from services.demo import evaluate as ev
 from services.demo.fetch import run_fetch
 from services.demo.procs import Supervisor, cli_argv

@@ -13,7 +13,7 @@ from services.localizer.init import CoarseSearch
 from services.localizer.localizer import get_localizer, replay
 from services.localizer.map_cache import TileCache, class_slots
 from services.localizer.metrics import localization_metrics
-from tests.localizer.synthetic import fill_cache, frame_points, straight_road, synthetic_drive
+from services.localizer.synthetic import fill_cache, frame_points, straight_road, synthetic_drive
 
 
 @pytest.fixture(scope="module")

@@ -17,9 +17,9 @@ from common.config import BusConfig, load_config
 from common.contours import CODEC, RAW_CODEC, encode_raw, encode_tile
 from common.messages import Pose, Tile
 from services.localizer.map_cache import TileCache
+from services.localizer.synthetic import fill_cache, straight_road, synthetic_drive, write_log
 from services.localizer.tiles import TileClient, tiles_needed
 from tests.conftest import spawn
-from tests.localizer.synthetic import fill_cache, straight_road, synthetic_drive, write_log
 
 
 @pytest.fixture(scope="module")

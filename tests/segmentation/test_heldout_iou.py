@@ -12,7 +12,7 @@ FLOORS = {"road": 0.85, "lane_line": 0.50, "crosswalk": 0.70, "stop_line": 0.60}
 @pytest.mark.shared_data
 @pytest.mark.skipif(not DEFAULT_MODEL.is_file(), reason="no packaged model yet")
 def test_packaged_model_iou_floor_on_heldout_karlsruhe_frames(shared_data):
-    from services.segtrain.evaluate import IouAccumulator, render_heldout
+    from services.bench.heldout import IouAccumulator, render_heldout
 
     osm = shared_data / "lanelet2-karlsruhe" / "mapping_example.osm"
     if not osm.is_file():
@@ -35,7 +35,7 @@ def test_packaged_model_finds_ground_signs_painted_in_the_heldout_karlsruhe_worl
     """The benchmark's `sign_facing` frames: the Karlsruhe map has no ground signs, arrows and
     words no town paints are added to its lanes (measured 0.88 on these 8 frames)."""
     from common.classes import Cls
-    from services.segtrain.evaluate import IouAccumulator, render_heldout
+    from services.bench.heldout import IouAccumulator, render_heldout
 
     osm = shared_data / "lanelet2-karlsruhe" / "mapping_example.osm"
     if not osm.is_file():
@@ -56,7 +56,7 @@ def test_ground_signs_go_on_bare_road_apart_and_face_the_camera():
 
     from common.classes import Cls
     from common.world import World
-    from services.segtrain.evaluate import HELDOUT_TEXTS, render_heldout, with_ground_signs
+    from services.bench.heldout import HELDOUT_TEXTS, render_heldout, with_ground_signs
     from services.sim.town import TEXTS
     from services.sim.worlds import load_world
 
@@ -81,7 +81,7 @@ def test_ground_signs_go_on_bare_road_apart_and_face_the_camera():
 def test_iou_is_pooled_over_frames_and_its_bootstrap_interval_spans_the_frames():
     import numpy as np
 
-    from services.segtrain.evaluate import IouAccumulator
+    from services.bench.heldout import IouAccumulator
 
     truth = np.zeros((10, 10), np.uint8)
     truth[:, :5] = 2  # lane line: 50 px
@@ -113,7 +113,7 @@ def test_stop_facing_frames_each_show_a_stop_line_ahead_of_a_camera_on_the_road(
     import numpy as np
 
     from common.classes import Cls
-    from services.segtrain.evaluate import FacingPoses, render_heldout
+    from services.bench.heldout import FacingPoses, render_heldout
     from services.sim.worlds import load_world
 
     world = load_world("town:0.6", 2)
@@ -141,7 +141,7 @@ def test_paired_draws_score_both_models_on_the_same_frames():
     frame stays above 0."""
     import numpy as np
 
-    from services.segtrain.evaluate import IouAccumulator, bootstrap_interval
+    from services.bench.heldout import IouAccumulator, bootstrap_interval
 
     truth = np.zeros((10, 10), np.uint8)
     good, bad = IouAccumulator(), IouAccumulator()

@@ -7,15 +7,10 @@ import numpy as np
 import pytest
 
 from common.classes import NUM_CLASSES, Cls
+from common.config import FLIP_MODES
 from common.errors import ConfigError
-from common.segmentation import (
-    DEFAULT_MODEL,
-    FLIP_MODES,
-    GroundTruthSegmenter,
-    OnnxSegmenter,
-    get_segmenter,
-    model_flip_mode,
-)
+from common.segmentation import DEFAULT_MODEL, OnnxSegmenter, get_segmenter, model_flip_mode
+from services.sim.truth_segmenter import GroundTruthSegmenter
 
 needs_model = pytest.mark.skipif(not DEFAULT_MODEL.is_file(), reason="no packaged model yet")
 
@@ -67,7 +62,7 @@ def test_factory_picks_the_strategy():
 
 @pytest.mark.shared_data
 def test_twinlitenet_finds_lane_lines_in_the_lower_half_of_a_real_frame(shared_data):
-    from services.segtrain.external import (
+    from training.external import (
         assumed_camera,
         lane_ground_points,
         read_rgb,
@@ -106,7 +101,8 @@ def test_bilinear_upsampling_agrees_with_nearest_on_most_pixels(rng):
 
 
 def test_unsure_paint_becomes_unknown_and_confident_paint_stays():
-    from common.segmentation import _scores_at, _unsure_paint_unknown
+    from common.segmentation.refine import unsure_paint_unknown
+    from common.segmentation.scores import scores_at
 
     # 4 pixels, 6 classes: a sure lane line, an unsure lane line (lead 0.5), an unsure road
     # pixel (road is never dropped), a crosswalk leading by exactly the margin
@@ -116,7 +112,7 @@ def test_unsure_paint_becomes_unknown_and_confident_paint_stays():
     scores[Cls.ROAD, 0, 2], scores[Cls.LANE_LINE, 0, 2] = 1.1, 1.0
     scores[Cls.CROSSWALK, 0, 3], scores[Cls.NONE, 0, 3] = 2.0, 0.0
     labels = scores.argmax(axis=0).astype(np.uint8)
-    out = _unsure_paint_unknown(partial(_scores_at, scores), labels.copy(), 2.0)
+    out = unsure_paint_unknown(partial(scores_at, scores), labels.copy(), 2.0)
     assert out.tolist() == [[Cls.LANE_LINE, Cls.NONE, Cls.ROAD, Cls.CROSSWALK]]
 
 
@@ -141,10 +137,10 @@ def test_min_margin_drops_exactly_the_marking_pixels_the_model_is_unsure_of():
 
 
 def test_upsampled_argmax_equals_the_resize_then_argmax(rng):
-    from common.segmentation import (
+    from common.segmentation.scores import (
         UpsampledScores,
-        _resize_channels,
         argmax_channels,
+        resize_channels,
         upsampled_argmax,
         upsampled_at,
     )
@@ -154,7 +150,7 @@ def test_upsampled_argmax_equals_the_resize_then_argmax(rng):
                         interpolation=cv2.INTER_CUBIC).transpose(2, 0, 1)
     for scores in (np.ascontiguousarray(smooth, np.float32),
                    rng.normal(0, 1, (6, 19, 33)).astype(np.float32)):
-        up = _resize_channels(scores, (66, 38))
+        up = resize_channels(scores, (66, 38))
         np.testing.assert_array_equal(upsampled_argmax(scores), argmax_channels(up))
         ys, xs = np.nonzero(np.ones((38, 66), bool))
         np.testing.assert_allclose(upsampled_at(scores, ys, xs), up.reshape(6, -1), atol=1e-5)
@@ -231,7 +227,7 @@ def test_configured_segmenter_leaves_out_the_cameras_sky(tmp_path):
     from common.camera import camera_from_config, sky_rows
     from common.config import RoadmapConfig, load_config
     from common.segmentation import DEFAULT_SKY_MARGIN_DEG, configured_onnx
-    from services.segtrain.train import set_metadata
+    from training.train import set_metadata
 
     cfg = RoadmapConfig()
     camera = camera_from_config(cfg.camera)
@@ -311,7 +307,7 @@ def test_an_unknown_flip_mode_is_refused():
 def test_flip_average_by_opencv_matches_numpy_exactly(rng):
     """The OpenCV flip and weighted sum the runtime uses give numpy's reversed columns and
     0.5 * (a + b) bit for bit, for inputs and logits of any layout (also not contiguous)."""
-    from common.segmentation import mean_with_mirrored, mirror_columns, mirror_logits
+    from common.segmentation.scores import mean_with_mirrored, mirror_columns, mirror_logits
 
     for shape in ((1, 3, 312, 640), (1, 6, 156, 320), (2, 7, 5, 9)):
         x = rng.normal(scale=20.0, size=shape).astype(np.float32)
@@ -329,7 +325,7 @@ def test_sub_pixel_logits_mirror_and_score_at_full_resolution(rng):
     """Sub-pixel logits of a mirrored image, mirrored back, are the image's: the full-resolution
     planes they shuffle into mirror exactly (a plain column flip would put each pixel one
     full-resolution column off)."""
-    from common.segmentation import _subpixel_argmax, _subpixel_scores_at, mirror_logits
+    from common.segmentation.scores import mirror_logits, subpixel_argmax, subpixel_scores_at
 
     def unshuffled(full, s):  # (C, s h, s w) -> (C s s, h, w), as the model's sub-pixel head
         c, hh, ww = full.shape
@@ -342,18 +338,18 @@ def test_sub_pixel_logits_mirror_and_score_at_full_resolution(rng):
         np.testing.assert_array_equal(got[0], unshuffled(full, s))
     # applied to an image's logits, the argmax is the mirror of the image's labels
     full = rng.normal(size=(6, 8, 10)).astype(np.float32)
-    back = _subpixel_argmax(mirror_logits(unshuffled(full, 2), 2), 2)
+    back = subpixel_argmax(mirror_logits(unshuffled(full, 2), 2), 2)
     np.testing.assert_array_equal(back, full.argmax(0)[:, ::-1])
     # and the scores at full-resolution pixels (for the border classifier) are the full planes'
     ys, xs = rng.integers(0, 8, 50), rng.integers(0, 10, 50)
-    np.testing.assert_array_equal(_subpixel_scores_at(unshuffled(full, 2), 2, ys, xs),
+    np.testing.assert_array_equal(subpixel_scores_at(unshuffled(full, 2), 2, ys, xs),
                                   full[:, ys, xs])
     # and at the pixels of labels resized (nearest) to another size, those of the pixel picked
     for size in ((7, 5), (25, 19)):  # (W, H)
         resized = np.stack([cv2.resize(plane, size, interpolation=cv2.INTER_NEAREST)
                             for plane in full])
         ys, xs = np.divmod(np.arange(size[0] * size[1]), size[0])
-        got = _subpixel_scores_at(unshuffled(full, 2), 2, ys, xs,
+        got = subpixel_scores_at(unshuffled(full, 2), 2, ys, xs,
                                   scale=(8 / size[1], 10 / size[0]))
         np.testing.assert_array_equal(got, resized[:, ys, xs])
 

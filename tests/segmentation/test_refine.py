@@ -5,7 +5,8 @@ import pytest
 
 from common.classes import Cls
 from common.errors import ConfigError
-from common.segmentation import DEFAULT_MODEL, OnnxSegmenter, refine_paint_borders, session_metadata
+from common.segmentation import DEFAULT_MODEL, OnnxSegmenter, session_metadata
+from common.segmentation.refine import refine_paint_borders
 
 ROAD_GREY, PAINT_GREY = 80, 200
 
@@ -70,7 +71,7 @@ def _town_frame():
     """A town frame as the training renderers draw it (worn paint, curbs, shade): what the
     packaged model is sure and unsure of on real-looking paint. (A line drawing is unlike any
     training frame; the m64 network of 2026-11-28 finds little paint on _road_with_lines.)"""
-    from services.segtrain.evaluate import render_heldout
+    from services.bench.heldout import render_heldout
 
     (image, _), = render_heldout("town:0.6", frames=1, seed=3)[0]
     return image
@@ -108,7 +109,7 @@ def test_calibration_keeps_labels_that_need_no_refinement(tmp_path):
     when the truth is what that setting makes of it; set_metadata stores it for the runtime."""
     import cv2
 
-    from services.segtrain.train import calibrate_refine, set_metadata
+    from training.train import calibrate_refine, set_metadata
 
     frames = np.stack([_road_with_lines(), cv2.flip(_road_with_lines(), 1)])
     plain = OnnxSegmenter(refine={}, border_net=False)

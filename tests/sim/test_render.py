@@ -1,6 +1,6 @@
 """The renderer: markings land in the image exactly where the camera model projects them;
 label images invert through the IPM table; RGB frames are seeded, reproducible and fast enough
-to be worth benchmarking (timing lives in bench/bench_render.py)."""
+to be worth benchmarking (timing lives in services/bench/render.py)."""
 
 import cv2
 import numpy as np
@@ -163,8 +163,8 @@ def test_frames_at_unrelated_poses_compute_their_box_of_the_window_with_the_same
     reads about a quarter of it). Inside the box's margin the masks are the whole window's,
     and the frames are the same bytes: the margin covers the blur and the curb and sidewalk
     rings (a narrower margin fails this test)."""
-    from services.segtrain.synth import random_pose
     from services.sim.worlds import load_world
+    from training.synth import random_pose
 
     world = load_world("town", seed=2)
     rng = np.random.default_rng(5)

@@ -64,7 +64,7 @@ def test_town_routes_run_on_the_road_and_cross_a_300m_gnss_outage():
 
 
 def test_wide_town_roads_have_their_lanes_a_raised_median_and_routes_on_every_lane():
-    """Training towns (services.segtrain.data.LANE_MIX): four lanes each way split by a median."""
+    """Training towns (training.data.LANE_MIX): four lanes each way split by a median."""
     world = build_town(1.0, seed=3, lane_mix=(0.0, 0.0, 0.0, 1.0), median_prob=1.0)
     assert len(world.routes) == 5  # lanes 0 and 1 as the default town, and lanes 2 and 3
     # across the road from the innermost lane's route, mid-block: to the left the median

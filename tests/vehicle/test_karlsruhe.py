@@ -23,7 +23,7 @@ def karlsruhe_drive(shared_data, tmp_path_factory):
         world, tmp_path_factory.mktemp("ka"), profile="mapping", images=False, max_km=0.4
     )
     log = DriveLog(path)
-    mapper = build_mapper(log, log.meta.vehicle, load_config(env={}), "truth")
+    mapper = build_mapper(log, log.meta.vehicle, load_config(env={}))
     map_log(log, mapper, lambda patches: None, threading.Event(), StageTimer())
     return world, log, mapper
 

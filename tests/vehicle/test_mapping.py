@@ -6,11 +6,12 @@ import pytest
 from common.camera import build_ipm_lookup
 from common.config import load_config
 from common.drivelog import STREAM_KEYS, DriveLog, DriveLogMeta, DriveLogWriter
-from common.segmentation import DEFAULT_MODEL, GroundTruthSegmenter
+from common.segmentation import DEFAULT_MODEL
+from services.sim.truth_segmenter import GroundTruthSegmenter
 from services.vehicle.mapper import VehicleMapper
-from services.vehicle.node import StageTimer, _segmenter, map_log
+from services.vehicle.node import StageTimer, build_mapper, map_log
 from services.vehicle.quality import local_map_quality
-from tests.vehicle.synthetic import mapping_camera, write_drive_log
+from services.vehicle.synthetic import mapping_camera, write_drive_log
 
 
 def test_ipm_matches_analytic_projection(rng):
@@ -88,7 +89,9 @@ def test_the_fleet_votes_only_paint_its_model_is_sure_of(tmp_path):
     writer.write_frame(0, np.full((360, 640, 3), 90, np.uint8), None)
     writer.close({k: np.zeros(1) for k in STREAM_KEYS})
     log = DriveLog(tmp_path / "log")
-    assert _segmenter(log, load_config(env={}), "onnx").min_margin == 1.0
-    cfg = load_config(env={}, sets=["vehicle.paint_min_margin=0.5"])
-    assert _segmenter(log, cfg, "onnx").min_margin == 0.5
+    onnx = 'segmentation.kind="onnx"'
+    mapper = build_mapper(log, "map-0", load_config(env={}, sets=[onnx]))
+    assert mapper.segmenter.min_margin == 1.0
+    cfg = load_config(env={}, sets=[onnx, "vehicle.paint_min_margin=0.5"])
+    assert build_mapper(log, "map-0", cfg).segmenter.min_margin == 0.5
     assert cfg.localizer.paint_min_margin == 0.0

@@ -8,7 +8,7 @@ import pytest
 from common.geometry import se2_between
 from services.vehicle.estimator import PoseEstimator, integrate_odometry
 from services.vehicle.pose_graph import PoseGraph
-from tests.vehicle.synthetic import drive
+from services.vehicle.synthetic import drive
 
 
 def _run_estimator(streams, **kw):

@@ -14,8 +14,8 @@ import numpy as np
 from common.config import load_config
 from common.drivelog import DriveLog
 from services.vehicle.node import StageTimer, build_mapper, map_log
+from services.vehicle.synthetic import write_drive_log
 from tests.conftest import spawn
-from tests.vehicle.synthetic import write_drive_log
 
 SETS = [
     "--set",
@@ -47,7 +47,7 @@ def _vehicle(log, state, router):
 def _expected_ids(log_dir) -> set[str]:
     cfg = load_config(sets=[s for s in SETS if s != "--set"])
     log = DriveLog(log_dir)
-    mapper = build_mapper(log, log.meta.vehicle, cfg, "truth")
+    mapper = build_mapper(log, log.meta.vehicle, cfg)
     patches = []
     map_log(log, mapper, patches.extend, threading.Event(), StageTimer())
     return {p.patch_id for p in patches}

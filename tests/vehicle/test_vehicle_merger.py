@@ -11,8 +11,8 @@ from common import codec, keys
 from common.bus import open_session
 from common.config import BusConfig
 from common.messages import Stats
+from services.vehicle.synthetic import write_drive_log
 from tests.conftest import roadmap, spawn
-from tests.vehicle.synthetic import write_drive_log
 
 SETS = ["--set", "grid.shards=1", "--set", "vehicle.seal_every_frames=40"]
 

@@ -1,0 +1,1 @@
+"""The lab's own benchmarks: network architectures, training steps, training chunks."""
