@@ -44,12 +44,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     z.add_argument("--mode", choices=["client", "peer"], help="zenoh mode (default client)")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="roadmap", description=__doc__.splitlines()[0])
-    parser.add_argument("--version", action="version", version="roadmap 0.1.0")
-    sub = parser.add_subparsers(dest="command", required=True)
-
-    p = sub.add_parser("sim", help="simulate drives and write drive logs")
+def _sim(p: argparse.ArgumentParser) -> None:
     p.add_argument("--world", default=None, help=WORLD_HELP)
     p.add_argument("--out", required=True, help="directory for the drive logs")
     p.add_argument("--vehicles", type=int, default=1)
@@ -60,7 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-images", action="store_true", help="labels and sensors only")
     _common(p)
 
-    p = sub.add_parser("world", help="world tools")
+
+def _world(p: argparse.ArgumentParser) -> None:
     wsub = p.add_subparsers(dest="world_command", required=True)
     r = wsub.add_parser("render", help="render a world to a PNG in the paper's colours")
     r.add_argument("--world", default=None, help=WORLD_HELP)
@@ -68,7 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=int, default=0)
     _common(r)
 
-    p = sub.add_parser("vehicle", help="on-vehicle mapping of one drive log")
+
+def _vehicle(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log", required=True, help="drive log directory")
     p.add_argument("--id", default=None, help="vehicle id (default: from the log)")
     p.add_argument("--state", default=None, help="directory for the outbox (default: LOG/.vehicle)")
@@ -76,50 +73,79 @@ def build_parser() -> argparse.ArgumentParser:
                    help="shorthand for --set segmentation.kind=KIND")
     _common(p)
 
-    p = sub.add_parser("merger", help="a tile merger shard")
+
+def _merger(p: argparse.ArgumentParser) -> None:
     p.add_argument("--shard", type=int, required=True)
     p.add_argument("--shards", type=int, required=True)
     p.add_argument("--store", default=None, help="SQLite file (default ./merger-s<I>.sqlite)")
     _common(p)
 
-    p = sub.add_parser("localize", help="localize a production drive log against the map")
+
+def _localize(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log", required=True)
     p.add_argument("--out", default=None)
     p.add_argument("--id", default=None)
     _common(p)
 
-    p = sub.add_parser("router", help="run a local Zenoh router")
+
+def _router(p: argparse.ArgumentParser) -> None:
     p.add_argument("--listen", action="append", default=None, help="default tcp/127.0.0.1:7447")
     p.add_argument("--peer", action="append", default=[], help="another router to mesh with")
     p.add_argument("--log-level", default="INFO")
     p.add_argument("--config", default=None)
     p.add_argument("--set", action="append", default=[])
 
-    for name, text in (("demo", "run the whole fleet locally and write a report"),
-                       ("up", "start the deployment topology as local processes")):
-        p = sub.add_parser(name, help=text)
-        p.add_argument("--world", default=None, help=WORLD_HELP)
-        p.add_argument("--vehicles", type=int, default=3)
-        p.add_argument("--shards", type=int, default=2)
-        p.add_argument("--seed", type=int, default=0)
-        p.add_argument("--out", default="out")
-        if name == "demo":
-            p.add_argument("--scenario", choices=["default", "repaint"], default="default")
-            p.add_argument("--chaos", action="store_true",
-                           help="kill and restart a shard and a vehicle")
-            p.add_argument("--small", action="store_true", help="a short drive (for tests)")
-        else:
-            p.add_argument("--listen", default=None,
-                           help="router endpoint (default tcp/127.0.0.1:7447)")
-        _common(p)
 
-    p = sub.add_parser("bench", help="benchmark every stage and write bench.json")
+def _fleet(p: argparse.ArgumentParser) -> None:
+    """The options `demo` and `up` share: the world and the fleet's size."""
+    p.add_argument("--world", default=None, help=WORLD_HELP)
+    p.add_argument("--vehicles", type=int, default=3)
+    p.add_argument("--shards", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="out")
+
+
+def _demo(p: argparse.ArgumentParser) -> None:
+    _fleet(p)
+    p.add_argument("--scenario", choices=["default", "repaint"], default="default")
+    p.add_argument("--chaos", action="store_true", help="kill and restart a shard and a vehicle")
+    p.add_argument("--small", action="store_true", help="a short drive (for tests)")
+    _common(p)
+
+
+def _up(p: argparse.ArgumentParser) -> None:
+    _fleet(p)
+    p.add_argument("--listen", default=None, help="router endpoint (default tcp/127.0.0.1:7447)")
+    _common(p)
+
+
+def _bench(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="out")
     p.add_argument("--quick", action="store_true")
     _common(p)
 
-    p = sub.add_parser("dump-config", help="print the effective configuration as TOML")
-    _common(p)
+
+# subcommand -> (help, its options)
+PARSERS = {
+    "sim": ("simulate drives and write drive logs", _sim),
+    "world": ("world tools", _world),
+    "vehicle": ("on-vehicle mapping of one drive log", _vehicle),
+    "merger": ("a tile merger shard", _merger),
+    "localize": ("localize a production drive log against the map", _localize),
+    "router": ("run a local Zenoh router", _router),
+    "demo": ("run the whole fleet locally and write a report", _demo),
+    "up": ("start the deployment topology as local processes", _up),
+    "bench": ("benchmark every stage and write bench.json", _bench),
+    "dump-config": ("print the effective configuration as TOML", _common),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="roadmap", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version="roadmap 0.1.0")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name, (text, options) in PARSERS.items():
+        options(sub.add_parser(name, help=text))
     return parser
 
 

@@ -126,7 +126,36 @@ class OnnxSegmenter(Segmenter):
         path = Path(model_path)
         if not path.is_file():
             raise ConfigError(f"segmentation model not found: {path}")
-        self._session = _session(path, intra_op_threads)
+        meta, inp = self._open(path, input_size, intra_op_threads)
+        self._sky_rows(path, meta, inp, intra_op_threads, sky_fraction=sky_fraction,
+                       camera=camera, sky_margin_deg=sky_margin_deg)
+        self._normalization(meta, scale, mean, std)
+        # sub-pixel logits: s * s per class at 1/s of the input (channel c * s * s + i * s + j:
+        # class c at pixel (s y + i, s x + j)), argmaxed per sub-pixel, no upsampling
+        self.subpixel = int(meta.get("subpixel", 1))
+        self.head_map, self.priority = self._heads(head_map, priority)
+        self.name = name or meta.get("name", path.stem)
+        if upsample not in ("nearest", "bilinear"):
+            raise ConfigError(f"upsample must be 'nearest' or 'bilinear', got {upsample!r}")
+        self.upsample = upsample
+        self.min_margin = float(min_margin)
+        if self.min_margin < 0:
+            raise ConfigError(f"min_margin must be >= 0 (logits), got {min_margin}")
+        self._border_rules(path, meta, remapped=head_map is not None, refine=refine,
+                           border_net=border_net, threads=intra_op_threads)
+        # the mirror image (FLIP_MODES): "average" runs the network on the image and on its
+        # mirror, the mirror's scores mirrored back, and averages the two (test-time flip
+        # averaging; twice the network's time); "alternate" runs it once a call, on the image
+        # and on its mirror in turn; "off" on the image alone. None: the model's own
+        # (model_flip_mode)
+        self.flip = model_flip_mode(meta) if flip is None else flip
+        if self.flip not in FLIP_MODES:
+            raise ConfigError(f"flip must be one of {FLIP_MODES}, got {self.flip!r}")
+        self._mirror_next = False  # "alternate": whether the next call runs on the mirror
+
+    def _open(self, path: Path, input_size, threads: int):
+        """The session, the model's metadata and its input; the input size (W, H) it runs at."""
+        self._session = _session(path, threads)
         meta = session_metadata(self._session)
         inp = self._session.get_inputs()[0]
         self._input_name = inp.name
@@ -135,6 +164,13 @@ class OnnxSegmenter(Segmenter):
         if not all(isinstance(v, int) for v in self.input_size):
             raise ConfigError(f"{path}: the model's input size is dynamic ({inp.shape}); "
                               "give input_size=(W, H)")
+        return meta, inp
+
+    def _sky_rows(self, path: Path, meta: dict, inp, threads: int, *, sky_fraction: float,
+                  camera, sky_margin_deg) -> None:
+        """The top rows left out (sky_rows, at input size), from a share or from the camera's
+        rays `sky_margin_deg` above level; a dynamic-height model gets a session planned for
+        the rows it runs on."""
         self.sky_margin_deg = None  # the margin the sky rows follow from, given a camera
         if camera is not None:
             if sky_fraction:
@@ -153,62 +189,51 @@ class OnnxSegmenter(Segmenter):
         height = inp.shape[2]
         if isinstance(height, str):  # dynamic: a second session with the height fixed, so
             # onnxruntime plans the graph as a static one
-            self._session = _session(path, intra_op_threads, {height: h - self.sky_rows})
+            self._session = _session(path, threads, {height: h - self.sky_rows})
         elif self.sky_rows:
             logger.warning("%s: fixed input height %s, so every row is segmented "
                            "(sky_fraction %.2f ignored)", path, height, sky_fraction)
             self.sky_rows = 0
+
+    def _normalization(self, meta: dict, scale, mean, std) -> None:
+        """x = (rgb * scale - mean) / std: given values, else the model's metadata's."""
         self.scale = float(scale if scale is not None else meta.get("scale", 1.0 / 255.0))
         self.mean = np.asarray(mean if mean is not None else meta.get("mean", (0.0, 0.0, 0.0)),
                                np.float32)
         self.std = np.asarray(std if std is not None else meta.get("std", (1.0, 1.0, 1.0)),
                               np.float32)
-        # sub-pixel logits: s * s per class at 1/s of the input (channel c * s * s + i * s + j:
-        # class c at pixel (s y + i, s x + j)), argmaxed per sub-pixel, no upsampling
-        self.subpixel = int(meta.get("subpixel", 1))
-        self.head_map, self.priority = self._heads(head_map, priority)
-        self.name = name or meta.get("name", path.stem)
-        if upsample not in ("nearest", "bilinear"):
-            raise ConfigError(f"upsample must be 'nearest' or 'bilinear', got {upsample!r}")
-        self.upsample = upsample
-        self.min_margin = float(min_margin)
-        if self.min_margin < 0:
-            raise ConfigError(f"min_margin must be >= 0 (logits), got {min_margin}")
-        # paint borders re-decided on the image's brightness (refine_paint_borders): settings
-        # set for the model's own classes on town frames by training/ ride in its
-        # metadata, and apply unless a head_map remaps those classes; {} turns it off
+
+    def _border_rules(self, path: Path, meta: dict, *, remapped: bool, refine, border_net,
+                      threads: int) -> None:
+        """How paint borders are re-decided on the image.
+
+        `refine`: the brightness rule (refine_paint_borders); settings set for the model's own
+        classes on town frames by training/ ride in its metadata, and apply unless a head_map
+        remaps those classes (`remapped`); {} turns it off. `border_net`: the learned border
+        classifier (BorderNet), fitted on town frames by training/, decides the paint borders
+        in place of `refine` where the labels are at the model's input size and come from one
+        head: None takes the model's own (metadata `border_net`) if it has one and its classes
+        are not remapped, True insists on it, a dict is a spec; False or {}: off (the
+        brightness rule, 1-2 ms a frame less)."""
         if refine is None:
-            refine = meta.get("refine") if head_map is None else None
+            refine = None if remapped else meta.get("refine")
         self.refine = dict(refine or {})
         unknown = set(self.refine) - set(REFINE_DEFAULTS)
         if unknown:
             raise ConfigError(f"unknown refine setting(s) {sorted(unknown)}; "
                               f"known: {sorted(REFINE_DEFAULTS)}")
-        # the learned border classifier (BorderNet), fitted on town frames by training/,
-        # decides the paint borders in place of `refine` where the labels are at the model's
-        # input size and come from one head: None takes the model's own (metadata
-        # `border_net`) if it has one and no head_map remaps its classes, True insists on it,
-        # a dict is a spec; False or {}: off (the brightness rule, 1-2 ms a frame less)
         if border_net is None:
-            border_net = (meta.get("border_net") if head_map is None and len(self.priority) == 1
+            border_net = (meta.get("border_net") if not remapped and len(self.priority) == 1
                           else None)
         elif border_net is True:
-            if "border_net" not in meta or head_map is not None:
+            if "border_net" not in meta or remapped:
                 raise ConfigError(f"{path}: no border classifier for its own classes (metadata "
-                                  "`border_net`; roadmap train-seg --border-only fits one)")
+                                  "`border_net`; python -m training train-seg --border-only "
+                                  "fits one)")
             border_net = meta["border_net"]
-        self.border_net = BorderNet(border_net, intra_op_threads) if border_net else None
+        self.border_net = BorderNet(border_net, threads) if border_net else None
         if self.border_net and len(self.priority) != 1:
             raise ConfigError("border_net needs a model with one output head")
-        # the mirror image (FLIP_MODES): "average" runs the network on the image and on its
-        # mirror, the mirror's scores mirrored back, and averages the two (test-time flip
-        # averaging; twice the network's time); "alternate" runs it once a call, on the image
-        # and on its mirror in turn; "off" on the image alone. None: the model's own
-        # (model_flip_mode)
-        self.flip = model_flip_mode(meta) if flip is None else flip
-        if self.flip not in FLIP_MODES:
-            raise ConfigError(f"flip must be one of {FLIP_MODES}, got {self.flip!r}")
-        self._mirror_next = False  # "alternate": whether the next call runs on the mirror
 
     def _heads(self, head_map, priority):
         outputs = self._session.get_outputs()

@@ -129,13 +129,26 @@ def with_ground_signs(world, seed: int, spacing_m: float = 30.0, margin_m: float
     model mostly on scenes, looks and surroundings it never saw, less on glyphs it never saw."""
     import dataclasses
 
-    import cv2
-
-    from common.world import World
-    from services.sim import paint
-
     rng = np.random.default_rng([seed, 0x516E])
-    candidates = []  # (x, y, yaw)
+    candidates = _sign_candidates(world, rng)
+    placer = _SignPlacer(world, margin_m)
+    signs, anchors = [], []
+    for i in rng.permutation(len(candidates)):
+        x, y, yaw = candidates[i]
+        if anchors and np.hypot(*(np.array(anchors)[:, :2] - [x, y]).T).min() < spacing_m:
+            continue
+        glyph = _random_glyph(rng, x, y, yaw)
+        if placer.place(glyph):
+            signs += glyph
+            anchors.append((float(x), float(y), float(yaw)))
+    if not anchors:
+        raise ValueError(f"{world.name}: no bare road for a ground sign")
+    return dataclasses.replace(world, markings=list(world.markings) + signs), anchors
+
+
+def _sign_candidates(world, rng) -> list[tuple[float, float, float]]:
+    """(x, y, yaw) places for signs: every 10 m along the routes, then beside lane lines."""
+    candidates = []
     for route in world.routes:
         # not paint.arc_length (norm, not hypot): the two differ in the last bits, which moves
         # one of Karlsruhe's signs away from the placements the benchmark's figures come from
@@ -155,41 +168,55 @@ def with_ground_signs(world, seed: int, spacing_m: float = 30.0, margin_m: float
         for side in (-1.0, 1.0):
             xy = centre + side * rng.uniform(1.6, 1.9) * np.array([-along[1], along[0]])
             candidates.append((xy[0], xy[1], yaw + (np.pi if rng.random() < 0.5 else 0.0)))
-    cell = FacingPoses.CELL_M
-    labels, x0, y0 = world.rasterize_all(4.0, cell)
-    grow = int(np.ceil(margin_m / cell))
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1))
-    signs, anchors = [], []
-    for i in rng.permutation(len(candidates)):
-        x, y, yaw = candidates[i]
-        if anchors and np.hypot(*(np.array(anchors)[:, :2] - [x, y]).T).min() < spacing_m:
-            continue
-        if rng.random() < 0.7:
-            kinds = HELDOUT_ARROWS[int(rng.integers(len(HELDOUT_ARROWS)))]
-            scale = float(rng.uniform(0.85, 1.15))
-            glyph = [paint.arrow(kind, x, y, yaw, scale=scale) for kind in kinds]
-        else:
-            word = HELDOUT_TEXTS[int(rng.integers(len(HELDOUT_TEXTS)))]
-            glyph = paint.text_block(word, x, y, yaw)
+    return candidates
+
+
+def _random_glyph(rng, x: float, y: float, yaw: float) -> list:
+    """70 %: one of HELDOUT_ARROWS scaled 0.85-1.15; else a word of HELDOUT_TEXTS."""
+    from services.sim import paint
+
+    if rng.random() < 0.7:
+        kinds = HELDOUT_ARROWS[int(rng.integers(len(HELDOUT_ARROWS)))]
+        scale = float(rng.uniform(0.85, 1.15))
+        return [paint.arrow(kind, x, y, yaw, scale=scale) for kind in kinds]
+    word = HELDOUT_TEXTS[int(rng.integers(len(HELDOUT_TEXTS)))]
+    return paint.text_block(word, x, y, yaw)
+
+
+class _SignPlacer:
+    """The world's label raster, where each placed sign (with `margin_m` around it) claims
+    bare road; a glyph that would touch paint or another sign is refused."""
+
+    def __init__(self, world, margin_m: float):
+        import cv2
+
+        self.cell = FacingPoses.CELL_M
+        self.labels, self.x0, self.y0 = world.rasterize_all(4.0, self.cell)
+        self.grow = int(np.ceil(margin_m / self.cell))
+        self.kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE,
+                                                (2 * self.grow + 1, 2 * self.grow + 1))
+
+    def place(self, glyph: list) -> bool:
+        import cv2
+
+        from common.world import World
+
+        cell, grow, x0, y0 = self.cell, self.grow, self.x0, self.y0
         pts = np.concatenate([g.polygon_xy_m for g in glyph])
         c0 = int(np.floor((pts[:, 0].min() - x0) / cell)) - grow - 1
         r0 = int(np.floor((pts[:, 1].min() - y0) / cell)) - grow - 1
         c1 = int(np.ceil((pts[:, 0].max() - x0) / cell)) + grow + 1
         r1 = int(np.ceil((pts[:, 1].max() - y0) / cell)) + grow + 1
-        if r0 < 0 or c0 < 0 or r1 > labels.shape[0] or c1 > labels.shape[1]:
-            continue
+        if r0 < 0 or c0 < 0 or r1 > self.labels.shape[0] or c1 > self.labels.shape[1]:
+            return False
         mask = World("sign", glyph).rasterize(x0 + c0 * cell, y0 + r0 * cell, r1 - r0, c1 - c0,
                                               cell) > 0
-        footprint = cv2.dilate(mask.astype(np.uint8), kernel) > 0
-        window = labels[r0:r1, c0:c1]
+        footprint = cv2.dilate(mask.astype(np.uint8), self.kernel) > 0
+        window = self.labels[r0:r1, c0:c1]
         if not mask.any() or (window[footprint] != Cls.ROAD).any():
-            continue
+            return False
         window[footprint] = Cls.GROUND_SIGN
-        signs += glyph
-        anchors.append((float(x), float(y), float(yaw)))
-    if not anchors:
-        raise ValueError(f"{world.name}: no bare road for a ground sign")
-    return dataclasses.replace(world, markings=list(world.markings) + signs), anchors
+        return True
 
 
 def mean_paint_iou(ious: dict) -> float:

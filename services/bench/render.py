@@ -48,13 +48,36 @@ def run(quick: bool = False, frames: int | None = None, world_spec: str = "town"
     world = load_world(world_spec, seed=0)
     camera = camera_from_config(CameraConfig())
     rng = np.random.default_rng(0)
+    drive_ms = _drive_frames(world, camera, rng, frames)
+    jump_ms, jump_cpu = _random_pose_frames(world, camera, rng, max(frames // 5, 10))
+    return {
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "world": world.name,
+        "size": [camera.width, camera.height],
+        "load_avg_1min": round(os.getloadavg()[0], 2),
+        "render_rgb_and_labels": _stats(drive_ms["rgb"]),
+        "render_labels_only": _stats(drive_ms["lab"]),
+        "render_random_poses": _stats(jump_ms),
+        "cpu_time": {
+            "render_rgb_and_labels": _stats(drive_ms["rgb_cpu"]),
+            "render_labels_only": _stats(drive_ms["lab_cpu"]),
+            "render_random_poses": _stats(jump_cpu),
+        },
+        "label_only_sim": _label_only_sim(world, sim_km),
+    }
+
+
+def _drive_frames(world, camera, rng, frames: int) -> dict[str, list[float]]:
+    """ms per frame along a drive (wall and CPU; RGB + labels, and labels alone), after a
+    10-frame warm-up (tile cache, first window)."""
     traj = motion.drive(world.routes[0], rng)
     t = np.arange(0.0, traj.duration_s, 0.1)[: frames + 10]
     poses = traj.poses(t)
     others = _other_vehicles(traj, rng)
     shake = sensors.vibration(len(t), sensors.PROFILES["mapping"], rng)
     renderer = FrameRenderer(world, camera, seed=0)
-    rgb_ms, lab_ms, rgb_cpu, lab_cpu = [], [], [], []
+    ms = {"rgb": [], "lab": [], "rgb_cpu": [], "lab_cpu": []}
     for i, (ti, pose) in enumerate(zip(t, poses, strict=False)):
         T = camera.perturbed(shake[i, 0], shake[i, 1]).T_vehicle_camera
         c0, t0 = time.process_time(), time.perf_counter()
@@ -62,51 +85,37 @@ def run(quick: bool = False, frames: int | None = None, world_spec: str = "town"
         c1, t1 = time.process_time(), time.perf_counter()
         renderer.labels(pose, T, others(ti))
         c2, t2 = time.process_time(), time.perf_counter()
-        if i >= 10:  # after warm-up (tile cache, first window)
-            rgb_ms.append(1000 * (t1 - t0))
-            lab_ms.append(1000 * (t2 - t1))
-            rgb_cpu.append(1000 * (c1 - c0))
-            lab_cpu.append(1000 * (c2 - c1))
+        if i >= 10:
+            ms["rgb"].append(1000 * (t1 - t0))
+            ms["lab"].append(1000 * (t2 - t1))
+            ms["rgb_cpu"].append(1000 * (c1 - c0))
+            ms["lab_cpu"].append(1000 * (c2 - c1))
+    return ms
 
-    # frames away from a drive (the segmentation model's): each at a random pose, so each in a
-    # label window of its own, whose surface masks the renderer computes for the frame's box
-    # of it (jumps)
+
+def _random_pose_frames(world, camera, rng, n: int) -> tuple[list[float], list[float]]:
+    """ms per frame (wall, CPU) of frames away from a drive (the segmentation model's): each
+    at a random pose, so each in a label window of its own, whose surface masks the renderer
+    computes for the frame's box of it (jumps)."""
     jumper = FrameRenderer(world, camera, seed=0, jumps=True)
     jump_ms, jump_cpu = [], []
-    for i in range(max(frames // 5, 10)):
+    for i in range(n):
         pose = random_pose(world, rng, turn_prob=RANDOM_TURN_PROB)
         c0, t0 = time.process_time(), time.perf_counter()
         jumper.render(pose, camera.T_vehicle_camera, float(i))
         jump_ms.append(1000 * (time.perf_counter() - t0))
         jump_cpu.append(1000 * (time.process_time() - c0))
+    return jump_ms, jump_cpu
 
+
+def _label_only_sim(world, sim_km: float) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         path = simulate_drives(world, tmp, images=False, max_km=sim_km)[0]
         sim_s = time.perf_counter() - t0
         n_frames = len(list((Path(path) / "labels").glob("*.png")))
-
-    return {
-        "cores": os.cpu_count(),
-        "python": platform.python_version(),
-        "world": world.name,
-        "size": [camera.width, camera.height],
-        "load_avg_1min": round(os.getloadavg()[0], 2),
-        "render_rgb_and_labels": _stats(rgb_ms),
-        "render_labels_only": _stats(lab_ms),
-        "render_random_poses": _stats(jump_ms),
-        "cpu_time": {
-            "render_rgb_and_labels": _stats(rgb_cpu),
-            "render_labels_only": _stats(lab_cpu),
-            "render_random_poses": _stats(jump_cpu),
-        },
-        "label_only_sim": {
-            "km": sim_km,
-            "frames": n_frames,
-            "wall_s": round(sim_s, 2),
-            "frames_per_s": round(n_frames / sim_s, 1),
-        },
-    }
+    return {"km": sim_km, "frames": n_frames, "wall_s": round(sim_s, 2),
+            "frames_per_s": round(n_frames / sim_s, 1)}
 
 
 def main() -> int:

@@ -199,13 +199,50 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
     brightness rule. baseline_borders: how the baseline decides its paint
     borders: "model" (as the product), "rule" (its brightness rule) or "none". flip: None, as
     the model's metadata asks (as the product runs it), else one of FLIP_MODES."""
-    import onnxruntime
+    seg, gated, baseline = _segmenters(model_path, baseline_path, baseline_borders,
+                                       sky_margin_deg=sky_margin_deg, border_net=border_net,
+                                       flip=flip)
+    rng, paired_rng = np.random.default_rng(0), np.random.default_rng(1)
+    report = _header(seg, model_path, seed)
+    timed = []  # route frames for the speed measurement
+    worlds = heldout_worlds()
+    common = {"seed": seed, "rng": rng, "baseline": baseline, "paired_rng": paired_rng}
+    draws, paired = {}, {}
+    for name, spec in worlds[:2] if quick else worlds:
+        logger.info("rendering and segmenting %s", name)
+        report["worlds"][name], draws[name], paired[name] = evaluate_world(
+            seg, spec, frames=10 if quick else frames, gated=gated, keep=timed, **common)
+    report["iou"] = _mean_over_worlds(report["worlds"], "iou")
+    report["paint_gate"] = {"min_margin": gated.min_margin,
+                            **_paint_gate_means(report["worlds"])}
+    report["iou_ci90"] = bootstrap_interval(_means_of_draws(draws))
+    report["iou_roi"] = _mean_over_worlds(report["worlds"], "iou_roi")
+    if worlds and worlds[0][0] == "karlsruhe":  # the only world with stop lines
+        logger.info("rendering and segmenting karlsruhe frames facing stop lines")
+        report["stop_facing"], _, _ = evaluate_world(
+            seg, worlds[0][1], frames=10 if quick else frames, facing=Cls.STOP_LINE, **common)
+        report["stop_facing"]["world"] = "karlsruhe"
+    signs = _sign_facing(seg, worlds[:2] if quick else worlds,
+                         frames=10 if quick else max(frames // 3, 10), **common)
+    if signs:
+        report["sign_facing"] = signs
+    if baseline is not None:  # the model minus the baseline, on the same frames
+        report["baseline"] = _baseline_section(report, baseline, baseline_path, paired)
+    if timed:
+        logger.info("timing on %d route frames", len(timed))
+        report["speed"] = speed(seg, timed, repeats=30 if quick else 200)
+        report["ms_p50"], report["ms_p95"] = report["speed"]["ms_p50"], report["speed"]["ms_p95"]
+    return report
 
+
+def _segmenters(model_path, baseline_path, baseline_borders: str, *, sky_margin_deg,
+                border_net, flip):
+    """The model as the product runs it, the same gated as the mapping vehicles run it (paint
+    it is unsure of left unknown), and the baseline (None without baseline_path)."""
     # the rows the product leaves out for render_heldout's camera (None: each model's own)
     sky = {"camera": camera_from_config(CameraConfig()), "sky_margin_deg": sky_margin_deg}
     seg = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, **sky,
                         border_net=border_net, flip=flip)
-    # the model as the mapping vehicles run it: paint it is unsure of left unknown
     gated = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, **sky,
                           min_margin=VehicleConfig().paint_min_margin, flip=flip)
     borders = {"model": {}, "rule": {"border_net": False},
@@ -213,8 +250,14 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
     baseline = (get_segmenter("onnx", model_path=baseline_path, intra_op_threads=1,
                               **sky, **borders)
                 if baseline_path else None)
-    rng, paired_rng = np.random.default_rng(0), np.random.default_rng(1)
-    report = {
+    return seg, gated, baseline
+
+
+def _header(seg, model_path, seed: int) -> dict:
+    """What was measured, and where: the model, its runtime settings, the machine."""
+    import onnxruntime
+
+    return {
         "model": seg.name, "model_bytes": Path(model_path or DEFAULT_MODEL).stat().st_size,
         "refine": seg.refine,  # paint borders re-decided on the image ({}: off)
         "border_net": seg.border_net is not None,  # by the learned classifier instead
@@ -224,49 +267,29 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
         **cpu_description(),  # the speed depends on the vector units as much as on the model
         "seed": seed, "targets": TARGETS, "worlds": {},
     }
-    timed = []  # route frames for the speed measurement
-    worlds, draws, paired = heldout_worlds(), {}, {}
-    for name, spec in worlds[:2] if quick else worlds:
-        logger.info("rendering and segmenting %s", name)
-        report["worlds"][name], draws[name], paired[name] = evaluate_world(
-            seg, spec, frames=10 if quick else frames, seed=seed, rng=rng, baseline=baseline,
-            paired_rng=paired_rng, gated=gated, keep=timed)
-    report["iou"] = _mean_over_worlds(report["worlds"], "iou")
-    report["paint_gate"] = {"min_margin": gated.min_margin,
-                            **_paint_gate_means(report["worlds"])}
-    report["iou_ci90"] = bootstrap_interval(_means_of_draws(draws))
-    report["iou_roi"] = _mean_over_worlds(report["worlds"], "iou_roi")
-    if worlds and worlds[0][0] == "karlsruhe":  # the only world with stop lines
-        logger.info("rendering and segmenting karlsruhe frames facing stop lines")
-        report["stop_facing"], _, _ = evaluate_world(
-            seg, worlds[0][1], frames=10 if quick else frames, seed=seed, rng=rng,
-            facing=Cls.STOP_LINE, baseline=baseline, paired_rng=paired_rng)
-        report["stop_facing"]["world"] = "karlsruhe"
+
+
+def _sign_facing(seg, worlds, *, frames: int, **common) -> dict | None:
+    """IoU on frames facing ground signs, which every world gets painted (none has any)."""
     signs, sign_draws = {}, {}
-    for name, spec in worlds[:2] if quick else worlds:  # no world has signs: some are painted
+    for name, spec in worlds:
         logger.info("rendering and segmenting %s frames facing ground signs", name)
         signs[name], sign_draws[name], _ = evaluate_world(
-            seg, spec, frames=10 if quick else max(frames // 3, 10), seed=seed, rng=rng,
-            facing=Cls.GROUND_SIGN, baseline=baseline, paired_rng=paired_rng)
-    if signs:
-        report["sign_facing"] = {"iou": _mean_over_worlds(signs, "iou"),
-                                 "iou_ci90": bootstrap_interval(_means_of_draws(sign_draws)),
-                                 "iou_roi": _mean_over_worlds(signs, "iou_roi"), "worlds": signs}
-    if baseline is not None:  # the model minus the baseline, on the same frames
-        base_iou = _mean_over_worlds(
-            {w: {"iou": e["baseline"]["iou"]} for w, e in report["worlds"].items()}, "iou")
-        report["baseline"] = {"model": str(baseline_path), "refine": baseline.refine,
-                              "sky_rows": baseline.sky_rows,
-                              "border_net": baseline.border_net is not None,
-                              "flip": baseline.flip,
-                              "iou": base_iou,
-                              "diff": _diff(report["iou"], base_iou),
-                              "diff_ci90": bootstrap_interval(_means_of_draws(paired))}
-    if timed:
-        logger.info("timing on %d route frames", len(timed))
-        report["speed"] = speed(seg, timed, repeats=30 if quick else 200)
-        report["ms_p50"], report["ms_p95"] = report["speed"]["ms_p50"], report["speed"]["ms_p95"]
-    return report
+            seg, spec, frames=frames, facing=Cls.GROUND_SIGN, **common)
+    if not signs:
+        return None
+    return {"iou": _mean_over_worlds(signs, "iou"),
+            "iou_ci90": bootstrap_interval(_means_of_draws(sign_draws)),
+            "iou_roi": _mean_over_worlds(signs, "iou_roi"), "worlds": signs}
+
+
+def _baseline_section(report: dict, baseline, baseline_path, paired: dict) -> dict:
+    base_iou = _mean_over_worlds(
+        {w: {"iou": e["baseline"]["iou"]} for w, e in report["worlds"].items()}, "iou")
+    return {"model": str(baseline_path), "refine": baseline.refine,
+            "sky_rows": baseline.sky_rows, "border_net": baseline.border_net is not None,
+            "flip": baseline.flip, "iou": base_iou, "diff": _diff(report["iou"], base_iou),
+            "diff_ci90": bootstrap_interval(_means_of_draws(paired))}
 
 
 def _means_of_draws(draws: dict) -> list[dict]:

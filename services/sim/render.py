@@ -144,6 +144,16 @@ class Appearance:
     """Everything random about how a drive looks, drawn once from a seed."""
 
     def __init__(self, rng: np.random.Generator):
+        # the draws' order is the looks' seed contract: a drive's seed gives the same looks
+        self._surfaces(rng)
+        self._light(rng)
+        self._textures(rng)
+        self._skyline_colours(rng)
+        self._tint()
+        self._curbs(rng)
+
+    def _surfaces(self, rng) -> None:
+        """Asphalt, off-road ground and paint, and how worn the paint is."""
         g = rng.uniform(75, 125)
         tint = rng.uniform(-6, 6, 3)
         self.asphalt_rgb = np.array([g, g, g + rng.uniform(0, 6)]) + tint
@@ -162,6 +172,9 @@ class Appearance:
         ) * rng.uniform(0.85, 1.0)  # aged: yellowish
         self.fade = rng.uniform(0.45, 1.0)  # how much of the paint is left
         self.wear_level = rng.uniform(0.0, 0.3)  # worn fraction of paint
+
+    def _light(self, rng) -> None:
+        """Exposure, colour cast, shadows, sky, haze, blur and sensor noise."""
         self.gain = rng.uniform(0.65, 1.3)
         self.gain_wobble = rng.uniform(0.0, 0.15)  # clouds
         self.colour_cast = rng.uniform(0.92, 1.08, 3)
@@ -175,6 +188,9 @@ class Appearance:
         self.fog_m = rng.uniform(60.0, 250.0)
         self.blur_prob = rng.uniform(0.0, 0.4)
         self.noise_sigma = rng.uniform(1.5, 7.0)
+
+    def _textures(self, rng) -> None:
+        """World-anchored textures, the curb's colour and the skyline's shape."""
         # two-channel world-anchored textures: (grain, paint wear) at 4 cm, (blotches, roadside
         # mix) at 0.5 m
         self.fine = cv2.merge(
@@ -187,6 +203,8 @@ class Appearance:
         self.curb = rng.random() < 0.7
         self.shadow = _shadow_texture(rng, 512, 0.25, rng.uniform(0.3, 1.5))
         self.skyline_elev = self._skyline(rng)
+
+    def _skyline_colours(self, rng) -> None:
         palette = np.array(
             [
                 [120, 118, 115],
@@ -203,6 +221,9 @@ class Appearance:
         self.skyline_rgb = palette[rng.integers(len(palette), size=64)] * rng.uniform(
             0.75, 1.2, (64, 1)
         )
+
+    def _tint(self) -> None:
+        """The colour cast applied to every surface colour drawn so far."""
         for name in (
             "asphalt_rgb",
             "offroad_rgb",
@@ -214,6 +235,8 @@ class Appearance:
             "curb_rgb",
         ):
             setattr(self, name, (getattr(self, name) * self.colour_cast).astype(np.float32))
+
+    def _curbs(self, rng) -> None:
         # raised curbs (drawn last so that the draws above keep their values): a curb stone
         # 0.1-0.2 m wide and 8-16 cm high along every road edge, its vertical face usually in
         # shade (sometimes sunlit), often a paved sidewalk behind it at the curb's height

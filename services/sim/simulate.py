@@ -179,7 +179,33 @@ def simulate_drive(
     others = _other_vehicles(traj, rng)
     # 4. frames
     renderer = FrameRenderer(world, cam_true, seed=int(rng.integers(2**31)))
-    meta = DriveLogMeta(
+    meta = _log_meta(world, vehicle, traversal, profile, camera, images,
+                     odom_scale=scale, gyro_bias_rps=bias, calib=calib)
+    writer = DriveLogWriter(root, meta)
+    _write_frames(writer, renderer, cam_true, t_frame, poses, shake, others, images, progress)
+    # 5. streams and meta (log.json last marks the log complete)
+    t_truth = np.arange(0.0, traj.duration_s, 1.0 / TRUTH_HZ)
+    ns = lambda t: (np.round(np.asarray(t) * NS) + t0_s * NS).astype(np.int64)  # noqa: E731
+    writer.close({
+        "frame_t_ns": ns(t_frame), "frame_pose_true": poses,
+        "odom_t_ns": ns(t_odom), "odom_speed_mps": v_odom,
+        "imu_t_ns": ns(t_imu), "imu_yaw_rate_rps": w_imu,
+        "gnss_t_ns": ns(t_gnss), "gnss_xy_m": xy_gnss, "gnss_sigma_m": sig_gnss,
+        "gnss_ok": ok_gnss,
+        "truth_t_ns": ns(t_truth), "truth_pose": traj.poses(t_truth),
+    })
+    km = float(np.sum(np.linalg.norm(np.diff(traj.xy, axis=0), axis=1))) / 1000.0
+    outage = float((~ok_gnss).sum()) / profile.gnss_hz
+    logger.info("%s: %.2f km, %d frames, GNSS outage %.0f s", root.name, km, len(t_frame), outage)
+    return DriveSummary(root, km, len(t_frame), outage)
+
+
+def _log_meta(world: World, vehicle: str, traversal: str, profile: sensors.NoiseProfile,
+              camera: CameraModel, images: bool, *, odom_scale: float, gyro_bias_rps: float,
+              calib) -> DriveLogMeta:
+    """The drive log's meta: who drove where with which camera, and the drive's true sensor
+    errors (notes, for evaluation)."""
+    return DriveLogMeta(
         vehicle=vehicle,
         traversal=traversal,
         profile=profile.name,
@@ -191,14 +217,18 @@ def simulate_drive(
         camera=camera,
         notes={
             "source": "roadmap sim",
-            "odom_scale": scale,
-            "gyro_bias_rps": bias,
+            "odom_scale": odom_scale,
+            "gyro_bias_rps": gyro_bias_rps,
             "calibration_error_rad": [float(c) for c in calib],
             "vibration_deg": profile.vibration_deg,
             "images": images,
         },
     )
-    writer = DriveLogWriter(root, meta)
+
+
+def _write_frames(writer: DriveLogWriter, renderer: FrameRenderer, cam_true: CameraModel,
+                  t_frame, poses, shake, others, images: bool, progress=None) -> None:
+    """Frame by frame: the vibrating camera's labels (and image) at the true pose."""
     for i, (t, pose) in enumerate(zip(t_frame, poses, strict=False)):
         T = cam_true.perturbed(d_pitch_rad=shake[i, 0], d_roll_rad=shake[i, 1]).T_vehicle_camera
         visible = others(t)
@@ -209,29 +239,6 @@ def simulate_drive(
         writer.write_frame(i, rgb, lab)
         if progress:
             progress(i + 1, len(t_frame))
-    # 5. streams and meta (log.json last marks the log complete)
-    t_truth = np.arange(0.0, traj.duration_s, 1.0 / TRUTH_HZ)
-    ns = lambda t: (np.round(np.asarray(t) * NS) + t0_s * NS).astype(np.int64)  # noqa: E731
-    writer.close(
-        {
-            "frame_t_ns": ns(t_frame),
-            "frame_pose_true": poses,
-            "odom_t_ns": ns(t_odom),
-            "odom_speed_mps": v_odom,
-            "imu_t_ns": ns(t_imu),
-            "imu_yaw_rate_rps": w_imu,
-            "gnss_t_ns": ns(t_gnss),
-            "gnss_xy_m": xy_gnss,
-            "gnss_sigma_m": sig_gnss,
-            "gnss_ok": ok_gnss,
-            "truth_t_ns": ns(t_truth),
-            "truth_pose": traj.poses(t_truth),
-        }
-    )
-    km = float(np.sum(np.linalg.norm(np.diff(traj.xy, axis=0), axis=1))) / 1000.0
-    outage = float((~ok_gnss).sum()) / profile.gnss_hz
-    logger.info("%s: %.2f km, %d frames, GNSS outage %.0f s", root.name, km, len(t_frame), outage)
-    return DriveSummary(root, km, len(t_frame), outage)
 
 
 def _other_vehicles(traj: motion.Trajectory, rng):
