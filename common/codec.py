@@ -7,8 +7,13 @@ Departure from DESIGN.md (Wire format), on purpose: a GridPatch goes out with it
 votes packed (`packed`: {codec, n, data}, see pack_cells_votes) instead of the two raw arrays,
 16 -> about 1 byte per cell: the upload is what a vehicle pays for on a cellular link, and
 the bytes every router forwards and every shard writes and fsyncs before its ack. The decoder
-still takes the DESIGN form (`cells` + `votes` arrays); `encode(..., packed=False)` writes it."""
+still takes the DESIGN form (`cells` + `votes` arrays); `encode(..., packed=False)` writes it.
 
+Version 2 of the patch form, added beside it (issue #68): SparsePatch / SparseBatch, the
+"sparse/1" form of common/sparse.py, about 1 % of the packed form's bytes; GridPatch and
+IngestBatch decode (and apply) as before."""
+
+import lzma
 import math
 import zlib
 from typing import Any
@@ -16,10 +21,20 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from common import sparse
 from common.classes import NUM_CLASSES
 from common.errors import CodecError
 from common.grid import CELLS_PER_TILE
-from common.messages import GridPatch, IngestAck, IngestBatch, Pose, Stats, Tile
+from common.messages import (
+    GridPatch,
+    IngestAck,
+    IngestBatch,
+    Pose,
+    SparseBatch,
+    SparsePatch,
+    Stats,
+    Tile,
+)
 
 VERSION = 1
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
@@ -226,6 +241,95 @@ def _dec_batch(body: dict) -> IngestBatch:
     return IngestBatch([_dec_patch(p) for p in patches])
 
 
+# -- sparse patches (common/sparse.py) ----------------------------------------------------------
+# A SparseBatch's body is {"compression": "zlib" | "lzma", "size", "data"}: the msgpack list of
+# its patch bodies, compressed as one by whichever compressor gives fewer bytes (raw LZMA2 with
+# the filters below, or zlib level 9), so what its patches share costs once. "size" is the
+# uncompressed length: decompression stops there and must end exactly there.
+
+SPARSE_COMPRESSIONS = ("zlib", "lzma")
+_LZMA_FILTERS = [{"id": lzma.FILTER_LZMA2, "preset": 9}]
+
+
+def _enc_sparse_patch(p: SparsePatch) -> dict:
+    return {
+        "patch_id": p.patch_id,
+        "vehicle": p.vehicle,
+        "tile": [int(p.tile[0]), int(p.tile[1])],
+        "t_first_ns": int(p.t_first_ns),
+        "t_last_ns": int(p.t_last_ns),
+        "traversal": p.traversal,
+        "form": p.form,
+        "data": bytes(p.data),
+    }
+
+
+def _dec_sparse_patch(body: dict) -> SparsePatch:
+    what = "SparsePatch"
+    if not isinstance(body, dict):
+        raise CodecError(f"{what}: body must be a map")
+    form = _field(body, "form", str, what)
+    if form != sparse.FORM:
+        raise CodecError(f"{what}: unknown form {form!r}, expected {sparse.FORM}")
+    data = _field(body, "data", bytes, what)
+    sparse.unpack(data, f"{what}.data")  # strict: the payload must parse whole
+    t_first = _field(body, "t_first_ns", int, what)
+    t_last = _field(body, "t_last_ns", int, what)
+    if t_last < t_first:
+        raise CodecError(f"{what}: t_last_ns before t_first_ns")
+    patch_id = _field(body, "patch_id", str, what)
+    if not patch_id:
+        raise CodecError(f"{what}: patch_id must not be empty")
+    return SparsePatch(patch_id=patch_id, vehicle=_field(body, "vehicle", str, what),
+                       tile=_tile_field(body, what), t_first_ns=t_first, t_last_ns=t_last,
+                       traversal=_field(body, "traversal", str, what), data=data, form=form)
+
+
+def _enc_sparse_batch(b: SparseBatch) -> dict:
+    raw = msgpack.packb([_enc_sparse_patch(p) for p in b.patches], use_bin_type=True)
+    packed = {"zlib": zlib.compress(raw, 9),
+              "lzma": lzma.compress(raw, format=lzma.FORMAT_RAW, filters=_LZMA_FILTERS)}
+    name = min(SPARSE_COMPRESSIONS, key=lambda k: len(packed[k]))
+    return {"compression": name, "size": len(raw), "data": packed[name]}
+
+
+def _dec_sparse_batch(body: dict) -> SparseBatch:
+    what = "SparseBatch"
+    name = _field(body, "compression", str, what)
+    if name not in SPARSE_COMPRESSIONS:
+        raise CodecError(f"{what}: unknown compression {name!r}, expected one of "
+                         f"{list(SPARSE_COMPRESSIONS)}")
+    size = _field(body, "size", int, what)
+    if not 0 <= size <= MAX_MESSAGE_BYTES:
+        raise CodecError(f"{what}: size must be in [0, {MAX_MESSAGE_BYTES}]")
+    raw = _decompressed(name, _field(body, "data", bytes, what), size, what)
+    try:
+        bodies = msgpack.unpackb(raw, raw=False, strict_map_key=True, max_bin_len=size)
+    except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as exc:
+        raise CodecError(f"{what}: not a msgpack list of patch bodies: {exc}") from exc
+    if not isinstance(bodies, list) or len(bodies) > MAX_BATCH_PATCHES:
+        raise CodecError(f"{what}: expected a list of at most {MAX_BATCH_PATCHES} patches")
+    return SparseBatch([_dec_sparse_patch(p) for p in bodies])
+
+
+def _decompressed(name: str, data: bytes, size: int, what: str) -> bytes:
+    """Exactly `size` bytes out of `data`, never more (no bombs), with nothing left over."""
+    try:
+        if name == "zlib":
+            inflate = zlib.decompressobj()
+            raw = inflate.decompress(data, size)
+            whole = inflate.eof and not inflate.unconsumed_tail and not inflate.unused_data
+        else:
+            inflate = lzma.LZMADecompressor(format=lzma.FORMAT_RAW, filters=_LZMA_FILTERS)
+            raw = inflate.decompress(data, size)
+            whole = inflate.eof and not inflate.unused_data
+    except (zlib.error, lzma.LZMAError) as exc:
+        raise CodecError(f"{what}: not {name} data: {exc}") from exc
+    if len(raw) != size or not whole:
+        raise CodecError(f"{what}: data does not hold exactly {size} bytes of {name}")
+    return raw
+
+
 def _enc_ack(a: IngestAck) -> dict:
     return {"results": dict(a.results), "error": a.error}
 
@@ -311,6 +415,8 @@ def _dec_stats(body: dict) -> Stats:
 _CODECS = {
     GridPatch: ("GridPatch", _enc_patch, _dec_patch),
     IngestBatch: ("IngestBatch", _enc_batch, _dec_batch),
+    SparsePatch: ("SparsePatch", _enc_sparse_patch, _dec_sparse_patch),
+    SparseBatch: ("SparseBatch", _enc_sparse_batch, _dec_sparse_batch),
     IngestAck: ("IngestAck", _enc_ack, _dec_ack),
     Tile: ("Tile", _enc_tile, _dec_tile),
     Pose: ("Pose", _enc_pose, _dec_pose),

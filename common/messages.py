@@ -23,11 +23,46 @@ class GridPatch:
     # decoder only, so the shard's store writes them without packing again; not part of the
     # value (encode always packs cells + votes afresh)
     packed: bytes | None = field(default=None, compare=False, repr=False)
+    # the SparsePatch payload these cells + votes were expanded from (common.sparse.expand),
+    # set by the shard only, so its store keeps the patch as it came (and replays expand it)
+    sparse: bytes | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
 class IngestBatch:
     patches: list[GridPatch]
+
+
+@dataclass(frozen=True)
+class SparsePatch:
+    """A GridPatch in the "sparse/1" form (common/sparse.py): the traversal's footprint and
+    paint as polygons, its frames as key poses and the paint cells' pixel shares, from which
+    the shard derives the cells and votes (common.sparse.expand). Same idempotency key."""
+
+    patch_id: str
+    vehicle: str
+    tile: tuple[int, int]
+    t_first_ns: int
+    t_last_ns: int
+    traversal: str
+    data: bytes  # the sparse/1 payload (common.sparse.pack), uncompressed
+    form: str = "sparse/1"
+
+
+@dataclass(frozen=True)
+class SparseBatch:
+    """Sparse patches uploaded together: compressed as one (common.codec), so what the patches
+    of one seal share (vehicle, traversal, key poses) costs once."""
+
+    patches: list[SparsePatch]
+
+
+def batch_of(patches: list) -> "IngestBatch | SparseBatch":
+    """The upload message for patches of one form: SparseBatch for SparsePatch, else
+    IngestBatch."""
+    if patches and all(isinstance(p, SparsePatch) for p in patches):
+        return SparseBatch(list(patches))
+    return IngestBatch(list(patches))
 
 
 ACCEPTED = "accepted"
@@ -67,4 +102,4 @@ class Stats:
     counters: dict[str, float | int | str] = field(default_factory=dict)
 
 
-MESSAGE_TYPES = (GridPatch, IngestBatch, IngestAck, Tile, Pose, Stats)
+MESSAGE_TYPES = (GridPatch, IngestBatch, SparsePatch, SparseBatch, IngestAck, Tile, Pose, Stats)
