@@ -8,7 +8,8 @@ import threading
 from common import codec
 from common.contours import CODEC, LEGACY_CODECS, RAW_CODEC, encode_raw
 from common.errors import CodecError, TileError
-from common.messages import IngestAck, IngestBatch, Stats, Tile
+from common.messages import IngestAck, IngestBatch, SparseBatch, Stats, Tile
+from common.sparse import expand_patch
 from services.merger.shard import MergerShard, TileCodecCache, TileId
 from services.merger.store import ShardStore
 
@@ -17,6 +18,16 @@ logger = logging.getLogger(__name__)
 RECOVERY_CHUNK = 512
 RECOVERY_FLUSH_EVERY = 16  # chunks: labels are recomputed (and old traversals retired) as the
 # replay goes, so a restart after months of traversals never holds them all at once
+
+
+def grid_batch(msg) -> IngestBatch:
+    """An ingest payload's batch as GridPatches: an IngestBatch as it is, a SparseBatch's
+    patches expanded (common.sparse.expand_patch). CodecError for anything else."""
+    if isinstance(msg, IngestBatch):
+        return msg
+    if isinstance(msg, SparseBatch):
+        return IngestBatch([expand_patch(p) for p in msg.patches])
+    raise CodecError(f"expected an IngestBatch or SparseBatch, got {type(msg).__name__}")
 
 
 class DurableShard:
@@ -69,7 +80,7 @@ class DurableShard:
         decoded = []
         for i, payload in enumerate(payloads):  # outside the lock: flushes go on meanwhile
             try:
-                decoded.append((i, codec.decode(payload, expect=IngestBatch)))
+                decoded.append((i, grid_batch(codec.decode(payload))))
             except CodecError as exc:
                 acks[i] = self._error(f"bad IngestBatch: {exc}")
         with self.lock:

@@ -1,8 +1,10 @@
 """The shard's durable store: SQLite in WAL mode, one file per shard (DESIGN.md: Delivery).
 
 Holds every applied patch (id, tile, traversal, times, and its cells + votes as they came on the
-wire, common.codec.pack_cells_votes, ~1 byte per cell; rows written before that hold cells as
-uint32 and votes as uint8 where they fit, else uint16, and are still read) and each tile's
+wire, common.codec.pack_cells_votes, ~1 byte per cell, or a sparse patch's payload as it came,
+`form` "sparse/1", replayed through common.sparse.expand_patch; rows written before packed
+patches hold cells as uint32 and votes as uint8 where they fit, else uint16, and are still
+read) and each tile's
 compressed form with its version. The new patches of a batch, or
 of a group of batches, are written in ONE transaction, committed (fsync'd with synchronous=FULL)
 before the shard acks; on restart the shard replays the stored patches."""
@@ -16,7 +18,9 @@ import numpy as np
 
 from common.classes import NUM_CLASSES
 from common.codec import pack_cells_votes, unpack_cells_votes
-from common.messages import GridPatch
+from common.messages import GridPatch, SparsePatch
+from common.sparse import FORM as SPARSE_FORM
+from common.sparse import expand_patch
 
 logger = logging.getLogger(__name__)
 
@@ -26,7 +30,8 @@ CREATE TABLE IF NOT EXISTS patches (
     vehicle TEXT NOT NULL, traversal TEXT NOT NULL,
     t_first_ns INTEGER NOT NULL, t_last_ns INTEGER NOT NULL,
     cells BLOB NOT NULL, votes BLOB NOT NULL,
-    packed_n INTEGER  -- cells of the packed form in `cells` (votes empty); NULL: raw arrays
+    packed_n INTEGER,  -- cells of the packed form in `cells` (votes empty); NULL: raw arrays
+    form TEXT  -- NULL: cells (packed or raw); "sparse/1": the payload in `cells`
 );
 CREATE TABLE IF NOT EXISTS tiles (
     tx INTEGER NOT NULL, ty INTEGER NOT NULL, version INTEGER NOT NULL,
@@ -49,6 +54,8 @@ class ShardStore:
         columns = {row[1] for row in self.db.execute("PRAGMA table_info(patches)")}
         if "packed_n" not in columns:  # a store from before packed patches
             self.db.execute("ALTER TABLE patches ADD COLUMN packed_n INTEGER")
+        if "form" not in columns:  # ... and from before sparse patches
+            self.db.execute("ALTER TABLE patches ADD COLUMN form TEXT")
 
     def close(self) -> None:
         self.db.close()
@@ -64,21 +71,24 @@ class ShardStore:
     def save_patches(self, patches: list[GridPatch]) -> None:
         """All of them in one committed transaction, or none (raises sqlite3.Error)."""
         rows = [
-            (
-                p.patch_id, int(p.tile[0]), int(p.tile[1]), p.vehicle, p.traversal,
-                int(p.t_first_ns), int(p.t_last_ns),
-                p.packed if p.packed is not None else pack_cells_votes(p.cells, p.votes),
-                b"", len(p.cells),
-            )
+            (p.patch_id, int(p.tile[0]), int(p.tile[1]), p.vehicle, p.traversal,
+             int(p.t_first_ns), int(p.t_last_ns), *_stored_form(p))
             for p in patches
         ]
         with self._transaction():
-            self.db.executemany("INSERT OR IGNORE INTO patches VALUES (?,?,?,?,?,?,?,?,?,?)",
-                                rows)
+            self.db.executemany("INSERT OR IGNORE INTO patches (patch_id, tx, ty, vehicle, "
+                                "traversal, t_first_ns, t_last_ns, cells, votes, packed_n, form) "
+                                "VALUES (?,?,?,?,?,?,?,?,?,?,?)", rows)
 
     def load_patches(self) -> Iterator[GridPatch]:
-        cur = self.db.execute("SELECT * FROM patches ORDER BY rowid")
-        for pid, tx, ty, vehicle, trav, t0, t1, cells, votes, packed_n in cur:
+        cur = self.db.execute("SELECT patch_id, tx, ty, vehicle, traversal, t_first_ns, "
+                              "t_last_ns, cells, votes, packed_n, form FROM patches ORDER BY rowid")
+        for pid, tx, ty, vehicle, trav, t0, t1, cells, votes, packed_n, form in cur:
+            if form is not None:
+                yield expand_patch(SparsePatch(patch_id=pid, vehicle=vehicle, tile=(tx, ty),
+                                               t_first_ns=t0, t_last_ns=t1, traversal=trav,
+                                               data=bytes(cells), form=form))
+                continue
             if packed_n is None:
                 c = np.frombuffer(cells, dtype="<u4")
                 v = _votes_from_blob(votes, len(c))
@@ -102,6 +112,15 @@ class ShardStore:
 
     def _transaction(self):
         return _Transaction(self.db)
+
+
+def _stored_form(p: GridPatch) -> tuple[bytes, bytes, int | None, str | None]:
+    """(cells, votes, packed_n, form) of a patch's row: a sparse patch's payload as it came,
+    else the packed cells + votes (as they came, or packed here)."""
+    if p.sparse is not None:
+        return bytes(p.sparse), b"", None, SPARSE_FORM
+    packed = p.packed if p.packed is not None else pack_cells_votes(p.cells, p.votes)
+    return packed, b"", len(p.cells), None
 
 
 def _votes_from_blob(blob: bytes, n: int) -> np.ndarray:
