@@ -24,6 +24,7 @@ ENV_PREFIX = "ROADMAP_"
 FLIP_MODES = ("off", "average", "alternate")
 # segmentation.kind: the packaged ONNX model, or the simulator's corrupted true labels
 SEGMENTER_KINDS = ("onnx", "truth")
+PATCH_FORMS = ("cells", "sparse")  # vehicle.patch_form (services/vehicle/patchform.py)
 
 
 @dataclass(frozen=True)
@@ -203,6 +204,13 @@ class VehicleConfig:
     ipm_stride: int = 1  # pixel subsampling of the IPM lookup
     max_range_m: float = 11.0  # vote only ground points up to this far ahead (caps roi.length_m):
     # a 0.3 deg pitch vibration moves a ground point by range^2 / height x 0.005 (0.8 m at 15 m)
+    # what a sealed patch goes up as: "cells" (packed per-cell votes, ~1 byte per cell seen) or
+    # "sparse" (common/sparse.py: polygons + key poses + paint shares, ~1 % of those bytes)
+    patch_form: str = "cells"
+    # seal_every_frames of the sparse form: its bytes are mostly per patch (polygon seams, key
+    # poses, ids), 10.0 -> 6.6 KB per km driven on the demo drives at 300 (the map the same:
+    # the shard sums a traversal's patches in a tile before its ballot)
+    sparse_seal_every_frames: int = 300
     upload_batch: int = 16  # patches per IngestBatch
     upload_timeout_s: float = 5.0  # per ingest query
     backoff_min_s: float = 0.05
@@ -378,6 +386,9 @@ def _validate(cfg: RoadmapConfig) -> None:
     if cfg.segmentation.flip not in ("", *FLIP_MODES):
         raise ConfigError(f"segmentation.flip must be empty (the model's own) or one of "
                           f"{', '.join(FLIP_MODES)}, got {cfg.segmentation.flip!r}")
+    if cfg.vehicle.patch_form not in PATCH_FORMS:
+        raise ConfigError(f"vehicle.patch_form must be one of {', '.join(PATCH_FORMS)}, "
+                          f"got {cfg.vehicle.patch_form!r}")
     bad = [v for v in cfg.grid.shard_map.values() if not 0 <= v < cfg.grid.shards]
     if bad:
         raise ConfigError(f"grid.shard_map names shards outside [0, {cfg.grid.shards}): {bad}")

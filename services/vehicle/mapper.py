@@ -15,6 +15,7 @@ from common.geometry import transform_points_2d
 from common.messages import GridPatch
 from common.segmentation import Segmenter
 from services.vehicle.estimator import PoseEstimator
+from services.vehicle.patchform import CellsForm
 from services.vehicle.voting import VotingGrid, raster_window
 
 logger = logging.getLogger(__name__)
@@ -33,7 +34,8 @@ class VehicleMapper:
     """One mapping vehicle's traversal. Verbs: process_odometry/imu/gnss/frame, flush.
 
     seal_every_frames: committed frames per patch sequence number (each seal emits one patch per
-    touched tile with the votes since the previous seal); ipm_stride: pixel subsampling."""
+    touched tile with the votes since the previous seal); ipm_stride: pixel subsampling;
+    patch_form: what a sealed patch goes up as (services/vehicle/patchform.py)."""
 
     def __init__(
         self,
@@ -48,6 +50,7 @@ class VehicleMapper:
         estimator: PoseEstimator | None = None,
         seal_every_frames: int = 100,
         ipm_stride: int = 1,
+        patch_form=None,
     ):
         self.vehicle, self.traversal = vehicle, traversal
         self.segmenter = segmenter
@@ -57,12 +60,14 @@ class VehicleMapper:
         self.estimator = estimator or PoseEstimator()
         self.seal_every_frames = seal_every_frames
         self.ipm_stride = ipm_stride
+        self.patch_form = patch_form or CellsForm()
         self.delta = VotingGrid()  # votes since the last seal
         self.grid = VotingGrid()  # the whole local map (sealed votes)
         self.poses: dict[int, np.ndarray] = {}  # committed optimized poses by frame index
         self.seq = 0
         self._buffer: dict[int, _Buffered] = {}
         self._committed = 0
+        self._seal_poses: list[np.ndarray] = []  # poses of the frames voted since the last seal
 
     # -- sensor verbs ------------------------------------------------------------------------
 
@@ -110,6 +115,7 @@ class VehicleMapper:
             self.poses[i] = pose
             world_xy = transform_points_2d(pose, frame.points_cm.astype(np.float64) / POINT_SCALE)
             self.delta.add_points(world_xy, frame.classes, frame.t_ns)
+            self._seal_poses.append(np.asarray(pose, dtype=np.float64))
             self._committed += 1
             if self._committed % self.seal_every_frames == 0:
                 patches += self._seal()
@@ -130,10 +136,12 @@ class VehicleMapper:
     def frames_waiting(self) -> int:
         return len(self._buffer)
 
-    def _seal(self) -> list[GridPatch]:
+    def _seal(self) -> list:
         patches = self.delta.patches(self.vehicle, self.traversal, self.seq)
+        patches = self.patch_form.finish(patches, np.array(self._seal_poses).reshape(-1, 3))
         self.grid.merge(self.delta)
         self.delta.clear()
+        self._seal_poses = []
         if patches:
             self.seq += 1
         return patches

@@ -20,11 +20,12 @@ from common.bus import SampleKind, open_session, stop_event
 from common.config import RoadmapConfig, to_toml
 from common.drivelog import DriveLog
 from common.grid import owner_of_tile
-from common.messages import GridPatch, IngestAck, IngestBatch
+from common.messages import GridPatch, IngestAck, batch_of
 from common.segmentation import segmenter_for
 from services.vehicle.estimator import PoseEstimator, dead_reckon
 from services.vehicle.mapper import VehicleMapper
 from services.vehicle.outbox import Outbox
+from services.vehicle.patchform import get_patch_form
 
 logger = logging.getLogger(__name__)
 
@@ -37,7 +38,7 @@ def build_mapper(log: DriveLog, vehicle: str, cfg: RoadmapConfig):
     estimator = PoseEstimator(
         settle_lag_s=v.settle_lag_s, max_wait_s=v.max_wait_s, calib_window_s=v.calib_window_s
     )
-    return VehicleMapper(
+    mapper = VehicleMapper(
         vehicle=vehicle,
         traversal=log.meta.traversal,
         camera=log.meta.camera,
@@ -47,10 +48,14 @@ def build_mapper(log: DriveLog, vehicle: str, cfg: RoadmapConfig):
         roi_length_m=min(cfg.roi.length_m, v.max_range_m - cfg.roi.x_min_m),
         roi_width_m=cfg.roi.width_m,
         estimator=estimator,
-        seal_every_frames=v.seal_every_frames,
+        seal_every_frames=(v.sparse_seal_every_frames if v.patch_form == "sparse"
+                           else v.seal_every_frames),
         ipm_stride=v.ipm_stride,
     )
-
+    mapper.patch_form = get_patch_form(
+        v.patch_form, ipm=mapper.ipm, camera_x_m=float(log.meta.camera.T_vehicle_camera[0, 3]),
+        roi_width_m=cfg.roi.width_m, ipm_stride=v.ipm_stride)
+    return mapper
 
 
 # -- replay ------------------------------------------------------------------------------------
@@ -161,13 +166,13 @@ class Uploader(threading.Thread):
             backoff = min(backoff * 2, v.backoff_max_s) if pending else backoff
 
     def _send_round(self, pending: list[str]) -> bool:
-        by_shard = defaultdict(list)
+        by_shard = defaultdict(list)  # (shard, form): one batch holds patches of one form
         for pid in pending:
             patch = self._cache.get(pid) or self._cache.setdefault(pid, self.outbox.load(pid))
             shard = owner_of_tile(patch.tile, self.cfg.grid.shards, self.cfg.grid.shard_map)
-            by_shard[shard].append(patch)
+            by_shard[shard, type(patch)].append(patch)
         progressed = False
-        for shard, patches in by_shard.items():
+        for (shard, _), patches in by_shard.items():
             if f"s{shard}" not in self.alive:
                 continue  # wait for the owner (liveliness) rather than drop
             for k in range(0, len(patches), self.cfg.vehicle.upload_batch):
@@ -179,7 +184,7 @@ class Uploader(threading.Thread):
         return progressed
 
     def _send(self, shard: int, patches: list[GridPatch]) -> bool:
-        payload = codec.encode(IngestBatch(patches))
+        payload = codec.encode(batch_of(patches))
         self.sent += len(patches)
         self.bytes_sent += len(payload)
         self.sent_ids.update(p.patch_id for p in patches)

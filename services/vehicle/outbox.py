@@ -1,7 +1,8 @@
 """On-disk outbox of the vehicle: every GridPatch is durable here before it is sent.
 
 Layout under the state directory:
-    outbox/<patch_id>.patch   one encoded GridPatch per file, written tmp + fsync + rename
+    outbox/<patch_id>.patch   one encoded GridPatch (or SparsePatch) per file, written tmp +
+                              fsync + rename
     acked.log                 "<patch_id> <accepted|duplicate>" lines, appended + fsynced on ack
     progress.json             {"traversal", "sealed": number of patch sequence numbers written}
 
@@ -17,7 +18,8 @@ import re
 from pathlib import Path
 
 from common import codec
-from common.messages import ACCEPTED, GridPatch
+from common.errors import CodecError
+from common.messages import ACCEPTED, GridPatch, SparsePatch
 
 logger = logging.getLogger(__name__)
 
@@ -56,7 +58,7 @@ class Outbox:
 
     # -- patches -----------------------------------------------------------------------------
 
-    def put(self, patches: list[GridPatch]) -> None:
+    def put(self, patches: list[GridPatch | SparsePatch]) -> None:
         for p in patches:
             if p.patch_id in self._acked:
                 continue  # acked in an earlier run: never re-send
@@ -67,8 +69,11 @@ class Outbox:
         files = sorted(self.dir.glob("*" + SUFFIX), key=lambda f: f.stat().st_mtime_ns)
         return [f.name[: -len(SUFFIX)] for f in files]
 
-    def load(self, patch_id: str) -> GridPatch:
-        return codec.decode(self._path(patch_id).read_bytes(), expect=GridPatch)
+    def load(self, patch_id: str) -> GridPatch | SparsePatch:
+        patch = codec.decode(self._path(patch_id).read_bytes())
+        if not isinstance(patch, GridPatch | SparsePatch):
+            raise CodecError(f"outbox {patch_id}: expected a GridPatch or SparsePatch")
+        return patch
 
     def ack(self, results: dict[str, str]) -> None:
         """Log the acks durably, then delete the acked patches from the outbox."""
