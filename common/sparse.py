@@ -276,21 +276,21 @@ def density_image(roi: Roi) -> np.ndarray:
 
 def evidence_field(geometry: Geometry, tile) -> np.ndarray:
     """Flat (512 * 512) float32: camera pixels expected per cell of the tile over the patch's
-    frames (density_image swept along frame_poses)."""
+    frames (density_image swept along frame_poses; a frame whose ROI misses the tile adds
+    nothing)."""
     field = np.zeros((TILE_CELLS, TILE_CELLS), np.float32)
     if not geometry.n_frames or geometry.roi.pixels_per_frame <= 0:
         return field.reshape(-1)
     image = density_image(geometry.roi)
     h, w = image.shape
-    x0, y0 = tile_origin_m(tile)
+    affine = _image_to_tile(geometry.roi, frame_poses(geometry), tile)  # (F, 2, 3)
     corners = np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float64) - 0.5
-    for x, y, yaw in frame_poses(geometry):
-        m = _image_to_tile(geometry.roi, x - x0, y - y0, yaw)
-        dst = corners @ m[:, :2].T + m[:, 2]
-        c0, r0 = np.maximum(np.floor(dst.min(axis=0)).astype(int) - 1, 0)
-        c1, r1 = np.minimum(np.ceil(dst.max(axis=0)).astype(int) + 2, TILE_CELLS)
-        if c0 >= c1 or r0 >= r1:
-            continue
+    dst = corners @ affine[:, :, :2].transpose(0, 2, 1) + affine[:, None, :, 2]  # (F, 4, 2)
+    lo = np.maximum(np.floor(dst.min(axis=1)).astype(int) - 1, 0)
+    hi = np.minimum(np.ceil(dst.max(axis=1)).astype(int) + 2, TILE_CELLS)
+    for k in np.flatnonzero(np.all(lo < hi, axis=1)):
+        (c0, r0), (c1, r1) = lo[k], hi[k]
+        m = affine[k].copy()
         m[:, 2] -= (c0, r0)
         field[r0:r1, c0:c1] += cv2.warpAffine(image, m, (int(c1 - c0), int(r1 - r0)),
                                               flags=cv2.INTER_LINEAR,
@@ -298,16 +298,17 @@ def evidence_field(geometry: Geometry, tile) -> np.ndarray:
     return field.reshape(-1)
 
 
-def _image_to_tile(roi: Roi, x_m: float, y_m: float, yaw: float) -> np.ndarray:
-    """2x3 affine: density_image pixel (i forward, j lateral; centres at integers) -> tile cell
-    (col, row; centres at integers), the vehicle at (x_m, y_m) from the tile's corner."""
-    c, s = np.cos(yaw), np.sin(yaw)
+def _image_to_tile(roi: Roi, poses_xyyaw: np.ndarray, tile) -> np.ndarray:
+    """(F, 2, 3) affines: density_image pixel (i forward, j lateral; centres at integers) ->
+    tile cell (col, row; centres at integers), one per frame pose (world frame)."""
+    x0, y0 = tile_origin_m(tile)
+    c, s = np.cos(poses_xyyaw[:, 2]), np.sin(poses_xyyaw[:, 2])
     # vehicle frame of pixel (i, j): x = (x_min_dm + i + 0.5) / 10, y = (j + 0.5) / 10 - w / 2
     vx0 = (roi.x_min_dm + 0.5) * CELL_M
     vy0 = 0.5 * CELL_M - roi.width_dm * CELL_M / 2.0
-    a = np.array([[c, -s], [s, c]]) * CELL_M  # metres per pixel step, rotated
-    origin = np.array([x_m + c * vx0 - s * vy0, y_m + s * vx0 + c * vy0])
-    return np.hstack([a / CELL_M, ((origin / CELL_M) - 0.5)[:, None]])
+    col = (poses_xyyaw[:, 0] - x0 + c * vx0 - s * vy0) / CELL_M - 0.5
+    row = (poses_xyyaw[:, 1] - y0 + s * vx0 + c * vy0) / CELL_M - 0.5
+    return np.stack([np.stack([c, -s, col], axis=1), np.stack([s, c, row], axis=1)], axis=1)
 
 
 # -- shard side: geometry -> cells + votes -----------------------------------------------------
