@@ -133,6 +133,9 @@ class Uploader(threading.Thread):
         self.session, self.outbox, self.cfg, self.stop = session, outbox, cfg, stop
         self.mapping_done = threading.Event()
         self.wake = threading.Event()
+        # held while a seal's patches go into the outbox, so a send round takes them all or
+        # none (one batch per seal, not a seal split over two requests)
+        self.sealing = threading.Lock()
         self.alive: set[str] = set()
         self.sent = self.errors = 0  # send attempts of this run (retries included)
         self.bytes_sent = 0  # their request payloads
@@ -154,7 +157,8 @@ class Uploader(threading.Thread):
         v = self.cfg.vehicle
         backoff = v.backoff_min_s
         while not self.stop.is_set():
-            pending = self.outbox.pending()
+            with self.sealing:
+                pending = self.outbox.pending()
             if not pending and self.mapping_done.is_set():
                 return
             progressed = self._send_round(pending) if pending else False
@@ -297,7 +301,8 @@ def main(args, cfg: RoadmapConfig) -> int:
             for p in patches
             if int(p.patch_id.rsplit(".", 1)[1]) >= outbox.sealed(log.meta.traversal)
         ]
-        outbox.put(new)
+        with uploader.sealing:
+            outbox.put(new)
         if mapper.seq > outbox.sealed(log.meta.traversal):
             outbox.set_sealed(log.meta.traversal, mapper.seq)
         uploader.wake.set()
