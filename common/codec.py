@@ -34,6 +34,7 @@ from common.messages import (
     SparsePatch,
     Stats,
     Tile,
+    patch_id,
 )
 
 VERSION = 1
@@ -242,13 +243,17 @@ def _dec_batch(body: dict) -> IngestBatch:
 
 
 # -- sparse patches (common/sparse.py) ----------------------------------------------------------
-# A SparseBatch's body is {"compression": "zlib" | "lzma", "size", "data"}: the msgpack list of
-# its patch bodies, compressed as one by whichever compressor gives fewer bytes (raw LZMA2 with
-# the filters below, or zlib level 9), so what its patches share costs once. "size" is the
-# uncompressed length: decompression stops there and must end exactly there.
+# A SparseBatch's body is {"compression": "zlib" | "lzma", "size", "data"}: its patches,
+# compressed as one by whichever compressor gives fewer bytes (raw LZMA2 with the filters
+# below, or zlib level 9); "size" is the uncompressed length: decompression stops there and
+# must end exactly there. Uncompressed, a msgpack list of groups, one per run of patches of one
+# vehicle, traversal and form: {"vehicle", "traversal", "form", "patches": [[id, tx, ty,
+# t_first_ns, t_last_ns - t_first_ns, data], ...]}, where id is the patch id, or the seq of an
+# id made by common.messages.patch_id (so what a batch's patches share is written once).
 
 SPARSE_COMPRESSIONS = ("zlib", "lzma")
 _LZMA_FILTERS = [{"id": lzma.FILTER_LZMA2, "preset": 9}]
+_GROUP_FIELDS = {"vehicle", "traversal", "form", "patches"}
 
 
 def _enc_sparse_patch(p: SparsePatch) -> dict:
@@ -268,25 +273,43 @@ def _dec_sparse_patch(body: dict) -> SparsePatch:
     what = "SparsePatch"
     if not isinstance(body, dict):
         raise CodecError(f"{what}: body must be a map")
-    form = _field(body, "form", str, what)
-    if form != sparse.FORM:
-        raise CodecError(f"{what}: unknown form {form!r}, expected {sparse.FORM}")
-    data = _field(body, "data", bytes, what)
-    sparse.unpack(data, f"{what}.data")  # strict: the payload must parse whole
-    t_first = _field(body, "t_first_ns", int, what)
-    t_last = _field(body, "t_last_ns", int, what)
-    if t_last < t_first:
-        raise CodecError(f"{what}: t_last_ns before t_first_ns")
-    patch_id = _field(body, "patch_id", str, what)
-    if not patch_id:
+    return _checked_sparse(SparsePatch(
+        patch_id=_field(body, "patch_id", str, what), vehicle=_field(body, "vehicle", str, what),
+        tile=_tile_field(body, what), t_first_ns=_field(body, "t_first_ns", int, what),
+        t_last_ns=_field(body, "t_last_ns", int, what),
+        traversal=_field(body, "traversal", str, what), data=_field(body, "data", bytes, what),
+        form=_field(body, "form", str, what)), what)
+
+
+def _checked_sparse(p: SparsePatch, what: str) -> SparsePatch:
+    if p.form != sparse.FORM:
+        raise CodecError(f"{what}: unknown form {p.form!r}, expected {sparse.FORM}")
+    if not p.patch_id:
         raise CodecError(f"{what}: patch_id must not be empty")
-    return SparsePatch(patch_id=patch_id, vehicle=_field(body, "vehicle", str, what),
-                       tile=_tile_field(body, what), t_first_ns=t_first, t_last_ns=t_last,
-                       traversal=_field(body, "traversal", str, what), data=data, form=form)
+    if p.t_last_ns < p.t_first_ns:
+        raise CodecError(f"{what}: t_last_ns before t_first_ns")
+    sparse.unpack(p.data, f"{what}.data")  # strict: the payload must parse whole
+    return p
+
+
+def _short_id(p: SparsePatch) -> int | str:
+    seq = p.patch_id.rsplit(".", 1)[-1]
+    if seq.isdigit() and patch_id(p.vehicle, p.traversal, p.tile, int(seq)) == p.patch_id:
+        return int(seq)
+    return p.patch_id
 
 
 def _enc_sparse_batch(b: SparseBatch) -> dict:
-    raw = msgpack.packb([_enc_sparse_patch(p) for p in b.patches], use_bin_type=True)
+    groups: list[dict] = []
+    for p in b.patches:
+        if not groups or (groups[-1]["vehicle"], groups[-1]["traversal"], groups[-1]["form"]) != (
+                p.vehicle, p.traversal, p.form):
+            groups.append({"vehicle": p.vehicle, "traversal": p.traversal, "form": p.form,
+                           "patches": []})
+        groups[-1]["patches"].append([_short_id(p), int(p.tile[0]), int(p.tile[1]),
+                                      int(p.t_first_ns), int(p.t_last_ns - p.t_first_ns),
+                                      bytes(p.data)])
+    raw = msgpack.packb(groups, use_bin_type=True)
     packed = {"zlib": zlib.compress(raw, 9),
               "lzma": lzma.compress(raw, format=lzma.FORMAT_RAW, filters=_LZMA_FILTERS)}
     name = min(SPARSE_COMPRESSIONS, key=lambda k: len(packed[k]))
@@ -304,12 +327,41 @@ def _dec_sparse_batch(body: dict) -> SparseBatch:
         raise CodecError(f"{what}: size must be in [0, {MAX_MESSAGE_BYTES}]")
     raw = _decompressed(name, _field(body, "data", bytes, what), size, what)
     try:
-        bodies = msgpack.unpackb(raw, raw=False, strict_map_key=True, max_bin_len=size)
+        groups = msgpack.unpackb(raw, raw=False, strict_map_key=True, max_bin_len=size)
     except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as exc:
-        raise CodecError(f"{what}: not a msgpack list of patch bodies: {exc}") from exc
-    if not isinstance(bodies, list) or len(bodies) > MAX_BATCH_PATCHES:
-        raise CodecError(f"{what}: expected a list of at most {MAX_BATCH_PATCHES} patches")
-    return SparseBatch([_dec_sparse_patch(p) for p in bodies])
+        raise CodecError(f"{what}: not a msgpack list of patch groups: {exc}") from exc
+    if not isinstance(groups, list):
+        raise CodecError(f"{what}: expected a list of patch groups")
+    patches = [p for g in groups for p in _dec_sparse_group(g, what)]
+    if len(patches) > MAX_BATCH_PATCHES:
+        raise CodecError(f"{what}: at most {MAX_BATCH_PATCHES} patches, got {len(patches)}")
+    return SparseBatch(patches)
+
+
+def _dec_sparse_group(group, what: str) -> list[SparsePatch]:
+    if not isinstance(group, dict) or set(group) != _GROUP_FIELDS:
+        raise CodecError(f"{what}: a group must be a map {{{', '.join(sorted(_GROUP_FIELDS))}}}")
+    vehicle, traversal = _field(group, "vehicle", str, what), _field(group, "traversal", str, what)
+    form, rows = _field(group, "form", str, what), _field(group, "patches", list, what)
+    if len(rows) > MAX_BATCH_PATCHES:
+        raise CodecError(f"{what}: at most {MAX_BATCH_PATCHES} patches")
+    out = []
+    for row in rows:
+        if not (isinstance(row, list) and len(row) == 6
+                and isinstance(row[0], int | str) and not isinstance(row[0], bool)
+                and all(isinstance(v, int) and not isinstance(v, bool) for v in row[1:5])
+                and isinstance(row[5], bytes) and row[4] >= 0):
+            raise CodecError(f"{what}: a patch must be [id or seq, tx, ty, t_first_ns, "
+                             f"t_last_ns - t_first_ns >= 0, data]")
+        pid = patch_id(vehicle, traversal, (row[1], row[2]), row[0]) if isinstance(
+            row[0], int) and row[0] >= 0 else row[0]
+        if not isinstance(pid, str) or len(pid) > MAX_ID_CHARS:
+            raise CodecError(f"{what}: patch id must be a string of at most {MAX_ID_CHARS} "
+                             "characters or a seq >= 0")
+        out.append(_checked_sparse(SparsePatch(
+            patch_id=pid, vehicle=vehicle, tile=(row[1], row[2]), t_first_ns=row[3],
+            t_last_ns=row[3] + row[4], traversal=traversal, data=row[5], form=form), what))
+    return out
 
 
 def _decompressed(name: str, data: bytes, size: int, what: str) -> bytes:

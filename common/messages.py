@@ -7,6 +7,12 @@ import numpy as np
 from common.classes import NUM_CLASSES
 
 
+def patch_id(vehicle: str, traversal: str, tile, seq: int) -> str:
+    """A vehicle's idempotency key of its seq-th seal's patch of a tile: the same drive
+    re-mapped gives the same ids (and common.codec sends such an id in a SparseBatch as seq)."""
+    return f"{vehicle}.{traversal}.{tile[0]}_{tile[1]}.{seq:06d}"
+
+
 @dataclass(frozen=True)
 class GridPatch:
     """Occupied cells of one vehicle's local grid inside one tile: the idempotent upload unit."""

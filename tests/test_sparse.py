@@ -1,13 +1,23 @@
 """The sparse/1 patch form (common/sparse.py) and its messages: exact payload and codec round
 trips, strict decoding, and expansion back to the ballots of the cells it came from."""
 
+import zlib
+from dataclasses import replace
+
 import msgpack
 import numpy as np
 import pytest
 
 from common import codec, sparse
 from common.errors import CodecError
-from common.messages import GridPatch, IngestBatch, SparseBatch, SparsePatch, batch_of
+from common.messages import (
+    GridPatch,
+    IngestBatch,
+    SparseBatch,
+    SparsePatch,
+    batch_of,
+    patch_id,
+)
 from services.merger.shard import _Traversal
 from services.vehicle.patchform import SparseForm
 from tests.merger.helpers import DEMO_ROI, lane_tile, observed_traversal
@@ -50,6 +60,16 @@ def test_codec_round_trips_sparse_patches_and_batches(traversal):
     assert isinstance(batch_of([p for p, _ in traversal]), IngestBatch)
 
 
+def test_a_batch_keeps_ids_vehicles_and_order_of_any_patches(traversal):
+    """Ids a vehicle makes travel as their seq, any other id as it is; a batch may mix
+    vehicles and traversals and keeps its order."""
+    a, b, c = _sparse(traversal)[:3]
+    odd = replace(b, patch_id="anything/at-all", vehicle="map-9")
+    later = replace(c, traversal="d1", patch_id=patch_id(c.vehicle, "d1", c.tile, 7))
+    batch = SparseBatch([a, odd, later, replace(a, patch_id=a.patch_id + "0")])
+    assert codec.decode(codec.encode(batch)) == batch
+
+
 def test_a_sparse_batch_is_a_tenth_of_the_packed_cells(traversal):
     """(Synthetic votes are smooth and pack unusually well; the demo's real ones: 1 %.)"""
     cells = len(codec.encode(IngestBatch([p for p, _ in traversal])))
@@ -61,6 +81,16 @@ def _body(patches) -> dict:
     return msgpack.unpackb(codec.encode(SparseBatch(patches)), raw=False)
 
 
+def _repack(envelope: dict, change) -> None:
+    """Apply `change` to the uncompressed groups of a SparseBatch envelope and recompress."""
+    body = envelope["body"]
+    raw = codec._decompressed(body["compression"], body["data"], body["size"], "test")
+    groups = msgpack.unpackb(raw, raw=False)
+    change(groups)
+    raw = msgpack.packb(groups, use_bin_type=True)
+    body.update(compression="zlib", size=len(raw), data=zlib.compress(raw))
+
+
 @pytest.mark.parametrize("mutate, message", [
     (lambda b: b["body"].update(compression="brotli"), "unknown compression"),
     (lambda b: b["body"].update(size=b["body"]["size"] + 1), "exactly"),
@@ -68,6 +98,12 @@ def _body(patches) -> dict:
     (lambda b: b["body"].update(data=b["body"]["data"][:-3]), "SparseBatch"),
     (lambda b: b["body"].update(data=b"\x00" * 40), "SparseBatch"),
     (lambda b: b["body"].pop("size"), "missing field 'size'"),
+    (lambda b: _repack(b, lambda g: g[0].pop("form")), "a group must be a map"),
+    (lambda b: _repack(b, lambda g: g[0]["patches"][0].pop()), "a patch must be"),
+    (lambda b: _repack(b, lambda g: g[0]["patches"][0].__setitem__(4, -1)), "a patch must be"),
+    (lambda b: _repack(b, lambda g: g[0]["patches"][0].__setitem__(0, -1)), "patch id must"),
+    (lambda b: _repack(b, lambda g: g[0].update(form="sparse/0")), "unknown form"),
+    (lambda b: _repack(b, lambda g: g[0]["patches"][0].__setitem__(5, b"\x80")), "varint"),
 ])
 def test_codec_rejects_malformed_sparse_batches(traversal, mutate, message):
     body = _body(_sparse(traversal)[:2])

@@ -9,7 +9,7 @@ import numpy as np
 
 from common.classes import NUM_CLASSES
 from common.grid import CELL_M, global_cells, split_global_cells
-from common.messages import GridPatch
+from common.messages import GridPatch, patch_id
 
 CLASS_BITS = 3
 AXIS_BITS = 24
@@ -32,11 +32,6 @@ def unpack_keys(keys: np.ndarray):
     gy = (cell & ((1 << AXIS_BITS) - 1)) - AXIS_OFFSET
     gx = (cell >> AXIS_BITS) - AXIS_OFFSET
     return np.stack([gx, gy], axis=1), cls
-
-
-def patch_id(vehicle: str, traversal: str, tile, seq: int) -> str:
-    """Deterministic idempotency key: the same drive re-mapped gives the same ids."""
-    return f"{vehicle}.{traversal}.{tile[0]}_{tile[1]}.{seq:06d}"
 
 
 class VotingGrid:
