@@ -54,7 +54,10 @@ from common.grid import CELL_M, CELLS_PER_TILE, TILE_CELLS, tile_origin_m
 from common.messages import GridPatch, SparsePatch
 
 FORM = "sparse/1"
-FOOTPRINT_SMOOTH_CELLS = 5  # closing then opening square of the voted cells before tracing
+# closing then opening square of the voted cells before tracing: 5 spread the road 1-1.5 %
+# into what the camera saw as nothing (labelled cells' precision against the truth 0.972 ->
+# 0.963 on a demo drive; 3: 0.972, the same bytes)
+FOOTPRINT_SMOOTH_CELLS = 3
 FOOTPRINT_EPSILON_CELLS = 1.5  # approxPolyDP tolerance of the footprint
 PAINT_EPSILON_CELLS = 0.8  # ... and of paint (1.0 lost lane-line recall on the demo drives)
 KEY_EVERY = 10  # frames per key pose (every frame and every 10th gave the same maps)
