@@ -6,6 +6,7 @@ import signal
 import time
 
 import numpy as np
+import pytest
 
 from common import codec, keys
 from common.bus import open_session
@@ -17,9 +18,13 @@ from tests.conftest import roadmap, spawn
 SETS = ["--set", "grid.shards=1", "--set", "vehicle.seal_every_frames=40"]
 
 
-def _run_vehicle(log, state, router):
+FORMS = {"cells": [], "sparse": ["--set", "vehicle.patch_form=sparse",
+                                  "--set", "vehicle.sparse_seal_every_frames=40"]}
+
+
+def _run_vehicle(log, state, router, form=()):
     return roadmap("vehicle", "--log", log, "--state", state, "--connect", router, "--segmenter",
-                   "truth", *SETS, timeout=180)
+                   "truth", *SETS, *form, timeout=180)
 
 
 def _merger_counters(router) -> dict:
@@ -32,20 +37,21 @@ def _merger_counters(router) -> dict:
     raise AssertionError("merger stats never answered")
 
 
-def test_vehicle_uploads_to_a_real_shard_exactly_once(tmp_path, router):
+@pytest.mark.parametrize("form", sorted(FORMS))
+def test_vehicle_uploads_to_a_real_shard_exactly_once(tmp_path, router, form):
     log = tmp_path / "log"
     write_drive_log(log, np.random.default_rng(3), length_m=160.0, outage_m=None, frame_stride=2)
     merger = spawn("merger", "--shard", 0, "--shards", 1, "--store", tmp_path / "s0.sqlite",
                    "--connect", router, *SETS)
     try:
-        first = _run_vehicle(log, tmp_path / "state-a", router)
+        first = _run_vehicle(log, tmp_path / "state-a", router, FORMS[form])
         assert first.returncode == 0, first.stderr[-3000:]
         a = json.loads((tmp_path / "state-a" / "summary.json").read_text())
         assert a["patches_acked"] == a["patches_accepted"] > 0 and a["duplicates"] == 0
         applied = _merger_counters(router)["patches_applied"]
         assert applied == a["patches_accepted"]
 
-        second = _run_vehicle(log, tmp_path / "state-b", router)  # same drive, fresh state
+        second = _run_vehicle(log, tmp_path / "state-b", router, FORMS[form])  # fresh state
         assert second.returncode == 0, second.stderr[-3000:]
         b = json.loads((tmp_path / "state-b" / "summary.json").read_text())
         assert b["duplicates"] == b["patches_acked"] == a["patches_acked"]
