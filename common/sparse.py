@@ -24,11 +24,11 @@ So the form carries, per patch:
              are 2 or more octaves off the field, k = round(log2(votes / field)); the rest k = 0.
 Expanded, a road cell votes max(2, round(field)) for road, a paint cell max(1, round(field *
 2^k)) for its class; nothing else. Chosen on the stored patches of six demo drives (Karlsruhe
-seeds 0-4, town seed 0), merged maps against the cells form's, per class: this form within
-+0.018 / -0.006 of precision and recall (mean +-0.003); a field per patch or per 0.8-3.2 m block
-instead of the swept density, or one share per class instead of per cell, lost 0.01-0.02 of
-precision (stray paint then wins its ties); dropping the shares within an octave cost nothing,
-dropping those beyond it 0.01 of recall or precision.
+seeds 0-4, town seed 0), merged maps against the cells form's, per marking class: precision
+and recall at worst 0.005 below it (means -0.001 to +0.004); a field per patch or per 0.8-3.2 m
+block instead of the swept density, or one share per class instead of per cell, lost 0.01-0.02
+of precision (stray paint then wins its ties); dropping the shares within an octave cost
+nothing, dropping those beyond it 0.01 of recall or precision.
 
 Payload: LEB128 varints (signed ones zigzag), in this order:
     roi x_min_dm, length_dm, width_dm, camera_x_dm, fov_slope_milli, pixels_per_frame,
