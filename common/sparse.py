@@ -98,7 +98,7 @@ class Geometry:
     key_every: int
     keys: np.ndarray  # int64 (n_keys, 3): x, y in POSE_UNIT_M, yaw in YAW_UNIT_RAD
     layers: list  # per LAYERS entry: [component: [ring: int32 (n, 2) (col, row)]]
-    strong_at: np.ndarray  # int64 (m,): paint cells (decoded order) whose share is off 1
+    strong_at: np.ndarray  # int64 (m,): paint cells (decoded order) 2+ octaves off the field
     strong_k: np.ndarray  # int8 (m,): their octaves (|k| >= 2); every other paint cell k = 0
 
 
