@@ -29,6 +29,7 @@ COMMANDS = {
     "demo": "services.demo.run:demo_command",
     "up": "services.demo.run:up_command",
     "bench": "services.bench.runner:bench_command",
+    "eval": "services.eval.command:eval_command",
     "dump-config": "services.cli:dump_config",
 }
 
@@ -125,6 +126,17 @@ def _bench(p: argparse.ArgumentParser) -> None:
     _common(p)
 
 
+def _eval(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--suite", choices=["default", "quick"], default="default")
+    p.add_argument("--world", action="append", default=None, help="a world instead of the "
+                   "suite's (repeatable): " + WORLD_HELP)
+    p.add_argument("--seeds", default=None, help="seeds instead of the suite's, e.g. 101-108")
+    p.add_argument("--workers", type=int, default=2, help="drives at once (default 2)")
+    p.add_argument("--vehicles", type=int, default=3, help="mapping vehicles per drive")
+    p.add_argument("--out", default="out/eval")
+    _common(p)
+
+
 # subcommand -> (help, its options)
 PARSERS = {
     "sim": ("simulate drives and write drive logs", _sim),
@@ -136,6 +148,7 @@ PARSERS = {
     "demo": ("run the whole fleet locally and write a report", _demo),
     "up": ("start the deployment topology as local processes", _up),
     "bench": ("benchmark every stage and write bench.json", _bench),
+    "eval": ("run the evaluation suite and write eval.json", _eval),
     "dump-config": ("print the effective configuration as TOML", _common),
 }
 
