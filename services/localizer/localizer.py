@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from common.classes import Cls
+from common.config import LocalizerConfig
 from common.geometry import se2_between, se2_compose, transform_points_2d
 from services.localizer.ekf import PoseFilter
 from services.localizer.icp import Icp, IcpResult, IpmNoise
@@ -40,26 +41,26 @@ class Localizer:
         icp: Icp,
         ekf: PoseFilter,
         search: CoarseSearch,
-        max_points: int = 700,
-        road_fraction: float = 0.25,
-        gnss_inflate: float = 1.5,
+        max_points: int = LocalizerConfig.max_points,
+        road_fraction: float = LocalizerConfig.road_fraction,
+        gnss_inflate: float = LocalizerConfig.gnss_inflate,
         gnss_min_sigma_m: float = 1.0,
-        init_travel_m: float = 12.0,
-        init_frames: int = 30,
+        init_travel_m: float = LocalizerConfig.init_travel_m,
+        init_frames: int = LocalizerConfig.init_frames,
         init_min_overlap: float = 0.5,
         init_sigma_m: float = 0.3,
         init_min_frames: int = 8,
         init_every: int = 4,
         init_margin: float = 0.05,
-        reinit_bad_frames: int = 30,
-        recent_frames: int = 8,
+        reinit_bad_frames: int = LocalizerConfig.reinit_bad_frames,
+        recent_frames: int = LocalizerConfig.recent_frames,
         recent_points: int = 80,
-        use_prior: bool = False,
-        track_gate_m: float = 1.5,
+        use_prior: bool = LocalizerConfig.icp_prior,
+        track_gate_m: float = LocalizerConfig.icp_track_gate_m,
         calibration_rate: float = 0.0,
         reinit_gnss_rejections: int = 5,
-        hold_m: float = 0.0,
-        hold_below_m: float = 0.1,
+        hold_m: float = LocalizerConfig.hold_along_road_m,
+        hold_below_m: float = LocalizerConfig.hold_below_m,
         rival_travel_m: float = 200.0,
         rival_points: int = 4000,
         seed: int = 0,
