@@ -177,10 +177,6 @@ class LocalizerConfig:
     cache_tiles: int = 25
     publish: bool = True  # publish roadmap/pose/<vehicle>
     recent_frames: int = 0  # also match a sample of the last n frames' points (odometry-chained)
-    # use the filter's prediction as a prior inside ICP: a frame that barely constrains the
-    # along-road position cannot walk along the lines (Karlsruhe drive: x 0.070 -> 0.062, y 0.087 ->
-    # 0.051 m; town 0.066 -> 0.053, 0.082 -> 0.067 m)
-    icp_prior: bool = True
     # first correspondence gate while tracking (init: icp_gate_start_m; the gate also grows with
     # the filter's position sigma): 1.5 m let a frame lock onto the next marking (Karlsruhe
     # drive: x error 0.114 -> 0.070 m)

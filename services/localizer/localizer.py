@@ -55,7 +55,6 @@ class Localizer:
         reinit_bad_frames: int = LocalizerConfig.reinit_bad_frames,
         recent_frames: int = LocalizerConfig.recent_frames,
         recent_points: int = 80,
-        use_prior: bool = LocalizerConfig.icp_prior,
         track_gate_m: float = LocalizerConfig.icp_track_gate_m,
         calibration_rate: float = 0.0,
         reinit_gnss_rejections: int = 5,
@@ -74,7 +73,6 @@ class Localizer:
         self.init_margin = init_margin
         self.reinit_bad_frames = reinit_bad_frames
         self.recent_frames, self.recent_points = recent_frames, recent_points
-        self.use_prior = use_prior
         self.track_gate_m = track_gate_m
         # camera attitude offset (pitch, roll) learnt from the per-frame ICP attitude: the
         # calibration error is constant, the vibration averages out
@@ -141,24 +139,22 @@ class Localizer:
         if jac is not None:  # the slowly learnt camera calibration offset (pitch, roll)
             pts = pts + jac @ self.calibration[: jac.shape[2]]
         all_pts, all_cls, all_jac = self._with_recent(pts, cls, jac)
-        prior = self.ekf.cov if self.use_prior else None
         gate = max(self.track_gate_m, 3.0 * self.ekf.position_sigma_m)
+        # the filter's prediction is ICP's prior: a frame that barely constrains the along-road
+        # position cannot walk along the lines
         result = self.icp.register(
             all_pts,
             class_slots(all_cls),
             self.ekf.pose,
             self.cache,
             all_jac,
-            prior,
+            prior_cov=self.ekf.cov,
             gate_start_m=gate,
         )
         self._remember(result, pts, cls, jac)
-        if self.use_prior:
-            accepted = result is not None and self.ekf.update_posterior(
-                result.pose, self._held(result)
-            )
-        else:
-            accepted = result is not None and self.ekf.update_pose(result.pose, result.cov)
+        accepted = result is not None and self.ekf.update_posterior(
+            result.pose, self._held(result)
+        )
         if accepted and jac is not None and len(result.attitude):
             self.calibration[: len(result.attitude)] += self.calibration_rate * result.attitude
         diag = self._frame_diag(result, accepted)
@@ -468,7 +464,6 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         hold_m=lc.hold_along_road_m,
         hold_below_m=lc.hold_below_m,
         recent_frames=lc.recent_frames,
-        use_prior=lc.icp_prior,
         track_gate_m=lc.icp_track_gate_m,
         seed=seed,
     )
