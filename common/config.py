@@ -181,9 +181,8 @@ class LocalizerConfig:
     # the filter's position sigma): 1.5 m let a frame lock onto the next marking (Karlsruhe
     # drive: x error 0.114 -> 0.070 m)
     icp_track_gate_m: float = 0.5  # first correspondence gate while tracking, m
-    # estimate the camera pitch per frame in ICP: 0.3 deg of vibration moves a point 12 m ahead
-    # by 0.5 m (Karlsruhe drive: longitudinal error 0.124 -> 0.085 m mean)
-    estimate_attitude: bool = True
+    # ICP estimates the camera's pitch per frame: 0.3 deg of vibration moves a point 12 m ahead
+    # by 0.5 m
     attitude_roll: bool = False  # roll too (else pitch only; roll hardly moves ground points)
     attitude_sigma_deg: float = 0.3  # prior of the per-frame attitude offset
 

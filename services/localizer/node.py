@@ -121,7 +121,6 @@ class _FrameSource:
         self.log = log
         lc, roi = cfg.localizer, cfg.roi
         self.stride = lc.ipm_stride
-        self.estimate_attitude = lc.estimate_attitude
         self.roll = lc.attitude_roll
         self.ipm = FramePoints(
             log.meta.camera, x_min_m=roi.x_min_m, length_m=roi.length_m, width_m=roi.width_m
@@ -137,8 +136,6 @@ class _FrameSource:
             raise DriveLogError(f"{self.log.root}: frame {i} has neither an image nor labels")
         labels = self.segmenter.segment(image, truth)
         pts, cls, jac = self.ipm.points(labels, stride=self.stride)
-        if not self.estimate_attitude:
-            return pts, cls
         return pts, cls, (jac if self.roll else jac[:, :, :1])
 
 
