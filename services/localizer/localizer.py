@@ -255,9 +255,8 @@ class Localizer:
 
         Through a featureless stretch the odometry (its scale learnt) keeps the along-road
         position better than the weak, slowly biased along-road pull of the frames around it;
-        without the hold those frames walk it by +-0.1 m over ~10 s (Karlsruhe 0.6 km drive,
-        truth map: x 0.043 -> 0.027 m, y 0.039 -> 0.027 m). The threshold keeps it off an
-        uncertain start (right after initialization the along-road sigma is ~0.4 m), where a
+        without the hold those frames walk it by +-0.1 m over ~10 s. The threshold keeps it off
+        an uncertain start (right after initialization the along-road sigma is ~0.4 m), where a
         hold would freeze a wrong along-road guess."""
         info = res.information
         if not (self.hold_m > 0 and res.degenerate):

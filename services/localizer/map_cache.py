@@ -76,9 +76,7 @@ class TileCache:
         blurred into the likelihood field (the nearest-cell offsets keep the exact mask). A
         0.15 m line blurred by 0.15 m is a sharp ridge the refinement overshoots and that
         rewards points on the line's crest only; widened to 0.55 m it is a plateau with soft
-        flanks, still centred on the line. Measured on the Karlsruhe demo drive, fleet map,
-        contour/2: grow 1 -> 5 -> 7: x 0.075 -> 0.046 -> 0.053 m, y 0.064 -> 0.027 -> 0.032 m, yaw
-        0.152 -> 0.083 -> 0.097 deg."""
+        flanks, still centred on the line. 1: not widened."""
         self.capacity = int(capacity)
         self.margin = int(margin_cells)
         self.field_sigma_cells = float(field_sigma_cells)
