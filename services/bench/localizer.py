@@ -87,8 +87,7 @@ def run(quick: bool = False) -> dict:
     match_ms, update_ms, predict_ms, frame_ms = [], [], [], []
     loc.icp = _Timed(loc.icp, "register", match_ms)
     ekf = loc.ekf
-    update = "update_posterior" if loc.use_prior else "update_pose"  # the ICP pose's update
-    loc.ekf = _Timed(_Timed(ekf, update, update_ms), "predict", predict_ms)
+    loc.ekf = _Timed(_Timed(ekf, "update_posterior", update_ms), "predict", predict_ms)
     t_frame = {}
 
     def points(i):

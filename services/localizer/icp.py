@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.config import LocalizerConfig
 from common.geometry import wrap_angle
 from common.grid import CELL_M
 
@@ -130,20 +131,20 @@ class Icp:
     def __init__(
         self,
         *,
-        iterations: int = 12,
-        gate_start_m: float = 1.5,
-        gate_end_m: float = 0.4,
-        huber_m: float = 0.1,
+        iterations: int = LocalizerConfig.icp_iterations,
+        gate_start_m: float = LocalizerConfig.icp_gate_start_m,
+        gate_end_m: float = LocalizerConfig.icp_gate_end_m,
+        huber_m: float = LocalizerConfig.icp_huber_m,
         yaw_lever_m: float = 8.0,
         degenerate_ratio: float = 1e-3,
-        cov_scale: float = 4.0,
+        cov_scale: float = LocalizerConfig.icp_cov_scale,
         point_sigma_m: float = 0.05,
         probe_m: float = 0.1,
-        attitude_sigma_rad: float = math.radians(0.6),
+        attitude_sigma_rad: float = math.radians(LocalizerConfig.attitude_sigma_deg),
         min_sigma_m: float = 0.01,
         min_sigma_yaw_rad: float = 0.001,
         min_points: int = 30,
-        refine_iterations: int = 6,
+        refine_iterations: int = LocalizerConfig.icp_refine_iterations,
         field_sigma: float = 0.1,
         field_min: float = 0.02,
         field_slots: tuple = (1, 2),  # lane line, stop line

@@ -22,7 +22,7 @@ from common.geometry import quat_wxyz_from_yaw, transform_points_2d
 from common.messages import Pose
 from services.localizer.frames import FramePoints
 from services.localizer.localizer import get_localizer, replay
-from services.localizer.map_cache import TileCache
+from services.localizer.map_cache import get_tile_cache
 from services.localizer.metrics import localization_metrics, summary_line
 from services.localizer.tiles import TileClient, tiles_needed
 
@@ -44,7 +44,7 @@ def main(args, cfg) -> int:
 def localize_log(log: DriveLog, cfg, session, vehicle: str, out: Path) -> dict:
     """Localize every frame of a log; writes the outputs and returns the localization section."""
     lc = cfg.localizer
-    cache = TileCache(capacity=lc.cache_tiles, line_grow_cells=lc.field_line_grow_cells)
+    cache = get_tile_cache(lc)
     client = TileClient(session, cache, codec_name=lc.map_codec, timeout_s=cfg.bus.query_timeout_s)
     publisher = session.declare_publisher(keys.pose(vehicle)) if lc.publish else None
     loc = get_localizer(lc, cache, camera=log.meta.camera)
@@ -121,7 +121,6 @@ class _FrameSource:
         self.log = log
         lc, roi = cfg.localizer, cfg.roi
         self.stride = lc.ipm_stride
-        self.estimate_attitude = lc.estimate_attitude
         self.roll = lc.attitude_roll
         self.ipm = FramePoints(
             log.meta.camera, x_min_m=roi.x_min_m, length_m=roi.length_m, width_m=roi.width_m
@@ -137,8 +136,6 @@ class _FrameSource:
             raise DriveLogError(f"{self.log.root}: frame {i} has neither an image nor labels")
         labels = self.segmenter.segment(image, truth)
         pts, cls, jac = self.ipm.points(labels, stride=self.stride)
-        if not self.estimate_attitude:
-            return pts, cls
         return pts, cls, (jac if self.roll else jac[:, :, :1])
 
 

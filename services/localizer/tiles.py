@@ -12,6 +12,7 @@ import time
 import numpy as np
 
 from common import codec, keys
+from common.config import BusConfig, LocalizerConfig
 from common.contours import CODEC, LEGACY_CODECS, RAW_CODEC, decode_raw, decode_tile
 from common.errors import CodecError, TransportError
 from common.grid import TileId, tiles_around
@@ -51,8 +52,8 @@ class TileClient:
         session,
         cache,
         *,
-        codec_name: str = "contour",
-        timeout_s: float = 5.0,
+        codec_name: str = LocalizerConfig.map_codec,
+        timeout_s: float = BusConfig.query_timeout_s,
         retry_missing_s: float = 5.0,
         follow_updates: bool = True,
     ):

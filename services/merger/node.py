@@ -21,7 +21,7 @@ import cv2
 
 from common import codec, keys
 from common.bus import Callback, ZError, open_session, stop_event
-from common.config import RoadmapConfig
+from common.config import MergerConfig, RoadmapConfig
 from common.contours import CODEC
 from common.errors import CodecError, ConfigError
 from common.grid import owner_of_tile
@@ -59,8 +59,11 @@ def get_durable_shard(shard: int, shards: int, store_path: str, cfg: RoadmapConf
 
 
 class MergerNode:
-    def __init__(self, session, durable: DurableShard, *, shard: int, debounce_s: float,
-                 debounce_max_s: float = 2.0, ingest_queue: int = 256, ingest_group: int = 32):
+    def __init__(self, session, durable: DurableShard, *, shard: int,
+                 debounce_s: float = MergerConfig.debounce_s,
+                 debounce_max_s: float = MergerConfig.debounce_max_s,
+                 ingest_queue: int = MergerConfig.ingest_queue,
+                 ingest_group: int = MergerConfig.ingest_group):
         self.session = session
         self.durable = durable
         self.shard = shard

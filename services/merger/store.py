@@ -16,6 +16,7 @@ import numpy as np
 
 from common.classes import NUM_CLASSES
 from common.codec import pack_cells_votes, unpack_cells_votes
+from common.config import MergerConfig
 from common.messages import GridPatch
 
 logger = logging.getLogger(__name__)
@@ -39,7 +40,8 @@ CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 class ShardStore:
     """One SQLite file; not shared between threads without the caller's lock."""
 
-    def __init__(self, path: str | Path, *, synchronous: str = "FULL"):
+    def __init__(self, path: str | Path, *,
+                 synchronous: str = MergerConfig.sqlite_synchronous):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.db = sqlite3.connect(str(self.path), isolation_level=None, check_same_thread=False)

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.camera import CameraModel, build_ipm_lookup
+from common.config import VehicleConfig
 from common.geometry import transform_points_2d
 from common.messages import GridPatch
 from common.segmentation import Segmenter
@@ -46,8 +47,8 @@ class VehicleMapper:
         roi_length_m: float,
         roi_width_m: float,
         estimator: PoseEstimator | None = None,
-        seal_every_frames: int = 100,
-        ipm_stride: int = 1,
+        seal_every_frames: int = VehicleConfig.seal_every_frames,
+        ipm_stride: int = VehicleConfig.ipm_stride,
     ):
         self.vehicle, self.traversal = vehicle, traversal
         self.segmenter = segmenter
