@@ -87,6 +87,9 @@ class DemoConfig:
     chaos_after_s: float = 0.0  # --chaos kills this long after the shard applied its first patch
     vehicle_timeout_s: float = 600.0
     localizer_timeout_s: float = 600.0
+    # localize the production drive a second time on the uncompressed map (the codec's share
+    # of the error, report.json localization.uncompressed_map); roadmap eval turns it off
+    compare_raw_map: bool = True
     query_timeout_s: float = 5.0
 
 

@@ -252,11 +252,12 @@ class DemoRun:
         run's per-frame timings stay its own), on the uncompressed one."""
         _require("services.localizer.node", "the localizer service (services.localizer.node)")
         loc = self._localizer_run(sup, log, "localizer", [])
-        raw = self._localizer_run(sup, log, "localizer-raw", [
-            "--set", 'localizer.map_codec="raw"', "--set", "localizer.publish=false"])
-        loc["uncompressed_map"] = {k: raw.get(k) for k in (
-            "x_m", "y_m", "yaw_deg", "lateral_m", "longitudinal_m", "availability_0_5m",
-            "convergence_s", "tile_bytes")}
+        if self.d.compare_raw_map:
+            raw = self._localizer_run(sup, log, "localizer-raw", [
+                "--set", 'localizer.map_codec="raw"', "--set", "localizer.publish=false"])
+            loc["uncompressed_map"] = {k: raw.get(k) for k in (
+                "x_m", "y_m", "yaw_deg", "lateral_m", "longitudinal_m", "availability_0_5m",
+                "convergence_s", "tile_bytes")}
         return loc
 
     def _localizer_run(self, sup: Supervisor, log: Path, name: str, extra: list[str]) -> dict:
