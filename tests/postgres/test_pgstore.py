@@ -11,7 +11,7 @@ from services.merger.shard import MergerShard
 from services.merger.worker import RegionTable
 from tests.merger.helpers import lane_tile, patches_from_labels
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.postgres, pytest.mark.timeout(120)]
 
 
 def _db(url, name="t"):
