@@ -117,6 +117,11 @@ def _fleet(p: argparse.ArgumentParser) -> None:
     p.add_argument("--shards", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="out")
+    p.add_argument("--store", default=None, metavar="postgresql://URL",
+                   help="run --shards workers on this PostgreSQL database instead of SQLite "
+                        "shards (the demo empties its tables first)")
+    p.add_argument("--tile-servers", type=int, default=1,
+                   help="read-only tile servers beside the workers (with --store)")
 
 
 def _demo(p: argparse.ArgumentParser) -> None:
