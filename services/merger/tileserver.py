@@ -77,9 +77,7 @@ class TileServer:
         with self._lock:
             self.served += msg is not None
             self.missing += msg is None
-        if msg is None:
-            q.reply_del(key)
-        elif msg is not False:
+        if msg is not None and msg is not False:  # no such tile: no reply, as with no queryable
             q.reply(key, codec.encode(msg))
 
 

@@ -438,9 +438,7 @@ class WorkerNode:
             return
         tile = keys.parse_tile(key)
         msg = tile_message(self.table, self.read_db, tile, q.parameters)
-        if msg is None:
-            q.reply_del(key)
-        elif msg is not False:
+        if msg is not None and msg is not False:  # no such tile: no reply, as with no queryable
             q.reply(key, codec.encode(msg))
 
 
