@@ -156,6 +156,7 @@ class RegionTable:
             durable = DurableShard(shard, store, ident=f"{self.ident}/r{region[0]}_{region[1]}",
                                    cache=TileCodecCache())
             n = durable.recover()
+            refresh_raw(durable, durable.tiles())
             holder = Holder(tuple(region), epoch, durable, previous, n,
                             round(time.monotonic() - t0, 3), time.time())
             self.held[tuple(region)] = holder
@@ -174,7 +175,10 @@ class RegionTable:
         if holder is None:
             return
         try:
+            with holder.durable.lock:
+                dirty = holder.durable.shard.dirty_tiles()
             holder.durable.flush()
+            refresh_raw(holder.durable, dirty)
             self.leases.release(region, holder.epoch)
         except RoadmapError as exc:  # fenced or no database: the lease expires by itself
             logger.warning("%s: release of %s: %s", self.ident, region, exc)
@@ -405,7 +409,10 @@ class WorkerNode:
     def _flush_and_publish(self) -> None:
         for holder in self.table.holders():
             try:
+                with holder.durable.lock:
+                    dirty = holder.durable.shard.dirty_tiles()
                 holder.durable.flush()
+                refresh_raw(holder.durable, dirty)
             except Fenced as exc:
                 logger.warning("%s: %s", self.ident, exc)
                 self.table.drop(holder.region, "lost")
@@ -432,14 +439,24 @@ class WorkerNode:
     def _serve(self, q) -> None:
         key = str(q.key_expr)
         if key == keys.stats("merger", self.ident):
+            self._flush_and_publish()  # first: stored raw copies and tile queryables current
             counters = {**self.table.stats(), "worker_errors": self.errors}
             q.reply(key, codec.encode(Stats(role="merger", ident=self.ident, counters=counters)))
-            self._flush_and_publish()  # so every tile the stats list answers its queries now
             return
         tile = keys.parse_tile(key)
         msg = tile_message(self.table, self.read_db, tile, q.parameters)
         if msg is not None and msg is not False:  # no such tile: no reply, as with no queryable
             q.reply(key, codec.encode(msg))
+
+
+def refresh_raw(durable: DurableShard, tiles) -> None:
+    """Store the raw/1 copy of tiles whose labels were recomputed: DurableShard.flush persists
+    only tiles whose compressed bytes changed, and labels can change where the contours do not,
+    so the tile servers' raw copies would lag (same version, upserted again)."""
+    with durable.lock:
+        rows = [(m.tile, m.version, m.codec, m.data) for m in map(durable.tile, tiles) if m]
+        if rows:
+            durable.store.save_tiles(rows)
 
 
 def tile_message(table: RegionTable | None, db: PgDatabase, tile, parameters):

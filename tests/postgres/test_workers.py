@@ -18,7 +18,7 @@ from common.config import BusConfig
 from common.contours import decode_raw
 from common.grid import region_of_tile
 from common.messages import IngestAck, IngestBatch, Stats, Tile
-from services.merger.pgstore import PgDatabase
+from services.merger.pgstore import PgDatabase, read_tile
 from services.merger.shard import MergerShard
 from tests.conftest import spawn
 from tests.merger.helpers import lane_tile, patches_from_labels
@@ -161,6 +161,15 @@ def _check_map(fleet, batches):
     assert len(rows) == n and len({r[0] for r in rows}) == n  # each patch stored once
     assert fleet.applied() == n  # ... and applied once
     assert fleet.map_digest() == _reference(batches)
+    shard = MergerShard()  # the stored tiles (what tile servers serve) are that map too
+    for b in batches:
+        shard.apply_batch(b.patches)
+    shard.flush()
+    db = PgDatabase(fleet.url)
+    for tile in shard.tiles():
+        version, _, raw = read_tile(db, tile, raw=True)
+        assert np.array_equal(decode_raw(raw), shard.labels(tile)), tile
+    db.close()
 
 
 def test_sigkill_a_worker_mid_ingest_another_takes_over(fleet):
