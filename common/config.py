@@ -62,6 +62,10 @@ class CameraConfig:
 class GridConfig:
     shards: int = 2
     shard_map: dict[str, int] = field(default_factory=dict)  # "rx,ry" -> shard, overrides hashing
+    # how vehicles address the cloud (common/keys.py): "shard" = roadmap/ingest/s<owner> (the
+    # SQLite shards, needs grid.shards); "region" = roadmap/region/<rx>/<ry>/ingest (the
+    # PostgreSQL workers that hold regions by lease, services/merger/worker.py; no shard count)
+    routing: str = "shard"
 
 
 @dataclass(frozen=True)
@@ -199,6 +203,11 @@ class MergerConfig:
     ingest_group: int = 32  # waiting ingest queries stored in one transaction (group commit)
     # a shard is one core's work: N shards with N threads each oversubscribe N cores
     opencv_threads: int = 1  # OpenCV threads per shard process (0: OpenCV's, one per core)
+    # durable store: "" = one SQLite file per shard (the embedded default); "postgresql://..."
+    # = one shared PostgreSQL database (services/merger/pgstore.py), run by `roadmap worker`
+    store: str = ""
+    lease_s: float = 4.0  # a worker's region lease lasts this long unless renewed (fencing epoch)
+    lease_renew_s: float = 0.5  # the worker's control tick: renew, claim, release regions
 
 
 @dataclass(frozen=True)
@@ -339,6 +348,13 @@ def _validate(cfg: RoadmapConfig) -> None:
     if cfg.segmentation.flip not in ("", *FLIP_MODES):
         raise ConfigError(f"segmentation.flip must be empty (the model's own) or one of "
                           f"{', '.join(FLIP_MODES)}, got {cfg.segmentation.flip!r}")
+    if cfg.grid.routing not in ("shard", "region"):
+        raise ConfigError(f"grid.routing must be shard or region, got {cfg.grid.routing!r}")
+    if cfg.merger.store and not cfg.merger.store.startswith(("postgresql://", "postgres://")):
+        raise ConfigError(f"merger.store must be empty (SQLite) or postgresql://..., got "
+                          f"{cfg.merger.store!r}")
+    if not 0 < cfg.merger.lease_renew_s < cfg.merger.lease_s:
+        raise ConfigError("merger.lease_renew_s must be in (0, merger.lease_s)")
     bad = [v for v in cfg.grid.shard_map.values() if not 0 <= v < cfg.grid.shards]
     if bad:
         raise ConfigError(f"grid.shard_map names shards outside [0, {cfg.grid.shards}): {bad}")

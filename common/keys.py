@@ -5,7 +5,20 @@ Tile routing: a merger shard declares one queryable with complete=True on
 patch, and on start-up for every stored tile). A tile query therefore reaches only its owner,
 never every shard, and a `get` on a tile nobody holds answers with no reply at once. The routing
 state grows with the tiles a shard holds, not with the number of shards. Ingest goes to the shard
-by name (`roadmap/ingest/s<k>`): the vehicle computes the owner with common.grid.owner_of_tile."""
+by name (`roadmap/ingest/s<k>`): the vehicle computes the owner with common.grid.owner_of_tile.
+
+Region routing (grid.routing = "region": the PostgreSQL workers, services/merger/worker.py):
+ingest goes to `roadmap/region/<rx>/<ry>/ingest`, the region computed from the tile
+(common.grid.region_of_tile), so a vehicle needs no shard count. The worker holding a region's
+lease declares that key complete (one queryable per held region), and each worker declares the
+non-complete fallback `roadmap/region/*/*/ingest`: Zenoh's BEST_MATCHING routes a query to the
+complete holder when there is one (verified on 1.10.2) and only otherwise to every fallback,
+where the worker that rendezvous hashing over the live workers picks claims the unheld region
+and the others drop the query. Tiles keep their plain key `roadmap/tile/<tx>/<ty>` (the region
+is a pure function of it): the holder declares one complete queryable per tile it holds, and
+read-only tile servers (services/merger/tileserver.py) declare `roadmap/tile/*/*` complete and
+answer from the stored tiles; a get still reaches ONE queryable (the holder's exact key wins),
+never every worker, and the tiles stay readable while a region's writer is being replaced."""
 
 from common.errors import CodecError
 
@@ -14,6 +27,26 @@ PREFIX = "roadmap"
 
 def ingest(shard: int) -> str:
     return f"{PREFIX}/ingest/s{shard}"
+
+
+def region_ingest(rx: int, ry: int) -> str:
+    return f"{PREFIX}/region/{rx}/{ry}/ingest"
+
+
+REGION_INGEST_ALL = f"{PREFIX}/region/*/*/ingest"
+
+
+def parse_region_ingest(key: str) -> tuple[int, int]:
+    parts = str(key).split("/")
+    if len(parts) != 5 or parts[:2] != [PREFIX, "region"] or parts[4] != "ingest":
+        raise CodecError(f"expected key {PREFIX}/region/<rx>/<ry>/ingest, got {key!r}")
+    try:
+        return int(parts[2]), int(parts[3])
+    except ValueError as exc:
+        raise CodecError(f"region key needs integer chunks, got {key!r}") from exc
+
+
+TILE_ALL = f"{PREFIX}/tile/*/*"
 
 
 def tile(tx: int, ty: int) -> str:

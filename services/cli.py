@@ -24,6 +24,8 @@ COMMANDS = {
     "world": "services.sim.cli:world_command",
     "vehicle": "services.vehicle.node:main",
     "merger": "services.merger.node:main",
+    "worker": "services.merger.worker:main",
+    "tileserver": "services.merger.tileserver:main",
     "localize": "services.localizer.node:main",
     "router": "services.router:command",
     "demo": "services.demo.run:demo_command",
@@ -82,6 +84,18 @@ def _merger(p: argparse.ArgumentParser) -> None:
     _common(p)
 
 
+def _worker(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--id", default=None, help="worker name, unique in the fleet "
+                   "(default HOST-PID)")
+    p.add_argument("--store", default=None, help="postgresql://... (default merger.store)")
+    _common(p)
+
+
+def _tileserver(p: argparse.ArgumentParser) -> None:
+    _worker(p)
+    p.add_argument("--threads", type=int, default=2, help="serve threads (one connection each)")
+
+
 def _localize(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log", required=True)
     p.add_argument("--out", default=None)
@@ -104,6 +118,11 @@ def _fleet(p: argparse.ArgumentParser) -> None:
     p.add_argument("--shards", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="out")
+    p.add_argument("--store", default=None, metavar="postgresql://URL",
+                   help="run --shards workers on this PostgreSQL database instead of SQLite "
+                        "shards (the demo empties its tables first)")
+    p.add_argument("--tile-servers", type=int, default=1,
+                   help="read-only tile servers beside the workers (with --store)")
 
 
 def _demo(p: argparse.ArgumentParser) -> None:
@@ -143,6 +162,8 @@ PARSERS = {
     "world": ("world tools", _world),
     "vehicle": ("on-vehicle mapping of one drive log", _vehicle),
     "merger": ("a tile merger shard", _merger),
+    "worker": ("a tile merger worker holding regions by lease in PostgreSQL", _worker),
+    "tileserver": ("a read-only tile server over the PostgreSQL store", _tileserver),
     "localize": ("localize a production drive log against the map", _localize),
     "router": ("run a local Zenoh router", _router),
     "demo": ("run the whole fleet locally and write a report", _demo),

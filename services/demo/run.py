@@ -21,7 +21,7 @@ from common.drivelog import DriveLog
 from common.errors import ConfigError, RoadmapError
 from common.grid import owner_of_tile, tile_of_point
 from services.demo import evaluate as ev
-from services.demo import figures
+from services.demo import figures, pgfleet
 from services.demo.fetch import load_tiles, run_fetch
 from services.demo.procs import ProcessError, Supervisor
 
@@ -50,6 +50,13 @@ class DemoRun:
 
     def __init__(self, args, cfg: RoadmapConfig):
         cfg = fleet_config(cfg, args.shards)
+        self.store = getattr(args, "store", None)  # postgresql://: workers (services/demo/pgfleet)
+        if pgfleet.is_postgres(self.store):
+            cfg = pgfleet.pg_config(cfg, self.store)
+        elif self.store:
+            raise ConfigError(f"--store must be postgresql://..., got {self.store!r}")
+        self.dead: set[str] = set()  # shards killed by --chaos and not restarted
+        self.takeover_s: float | None = None
         if args.vehicles < 1 or args.shards < 1:
             raise ConfigError("roadmap demo needs --vehicles >= 1 and --shards >= 1")
         self.args, self.cfg, self.d = args, cfg, cfg.demo
@@ -140,7 +147,11 @@ class DemoRun:
     def _start_cloud(self, sup: Supervisor) -> None:
         _require("services.merger.node", "the merger service (services.merger.node)")
         self.router_endpoint = sup.start_router()
-        for i in range(self.args.shards):
+        if self.store:
+            pgfleet.reset_database(self.store)
+            pgfleet.start_workers(sup, self.args.shards, self.store,
+                                  getattr(self.args, "tile_servers", 1))
+        for i in range(0 if self.store else self.args.shards):
             sup.start_merger(i, self.args.shards, self.out / "run" / f"merger-s{i}.sqlite")
         self._wait_shards_ready(sup, timeout_s=60.0)
 
@@ -149,7 +160,7 @@ class DemoRun:
         while True:
             sup.check_alive(self._shard_names())
             stats = run_fetch(sup.router_endpoint, "stats", self.args.shards)
-            if all(v is not None for v in stats.values()):
+            if all(v is not None for k, v in stats.items() if f"merger-{k}" not in self.dead):
                 return stats
             if time.monotonic() > deadline:
                 missing = [k for k, v in stats.items() if v is None]
@@ -157,13 +168,16 @@ class DemoRun:
             time.sleep(0.5)
 
     def _shard_names(self) -> list[str]:
-        return [f"merger-s{i}" for i in range(self.args.shards)]
+        return [f"merger-s{i}" for i in range(self.args.shards)
+                if f"merger-s{i}" not in self.dead]
 
     def _map(self, sup: Supervisor, logs: list[Path]) -> None:
         """One vehicle process per drive log, all at once; chaos kills one shard and one vehicle."""
         _require("services.vehicle.node", "the vehicle service (services.vehicle.node)")
         names = [self._start_vehicle(sup, log) for log in logs]
-        if self.args.chaos:
+        if self.args.chaos and self.store and not self.dead:
+            self._pg_chaos(sup, names[0])
+        elif self.args.chaos and not self.store:
             self._chaos(sup, names[0], logs)
         self._wait_vehicles(sup, names)
 
@@ -226,6 +240,22 @@ class DemoRun:
             self.chaos_events.append({"t_s": sup.elapsed(), "event": "restart", "process": name})
         logger.info("chaos: killed and restarted merger-s%d (%d patches applied) and %s", shard,
                     applied, vehicle)
+
+    def _pg_chaos(self, sup: Supervisor, vehicle: str) -> None:
+        """On PostgreSQL: SIGKILL the busiest worker mid-ingest and do not restart it (the
+        others take its regions over: pipeline.takeover_s); kill and restart a vehicle."""
+        event = pgfleet.kill_busiest_worker(sup, self.args.shards, after_s=self.d.chaos_after_s)
+        self.dead.add(event["process"])
+        self.takeover_s = event["takeover_s"]
+        self.chaos_events.append(event)
+        if sup.procs[vehicle].running():
+            sup.kill(vehicle)
+            self.chaos_events.append({"t_s": sup.elapsed(), "event": "SIGKILL",
+                                      "process": vehicle, "vehicle_was_running": True})
+            time.sleep(1.0)
+            sup.restart(vehicle)
+            self.chaos_events.append({"t_s": sup.elapsed(), "event": "restart",
+                                      "process": vehicle})
 
     def _busiest_shard(self, logs: list[Path]) -> int:
         owners = Counter()
@@ -447,6 +477,7 @@ class DemoRun:
             "errors": sum(int(c.get("errors", 0)) for c in shards)
             + sum(int(x.get("errors", 0)) for x in v),
             "vehicle_duplicates": sum(int(x.get("duplicates", 0)) for x in v),
+            **({"takeover_s": self.takeover_s} if self.store and self.args.chaos else {}),
             "shards": {k: {n: c.get(n) for n in
                            ("patches_applied", "duplicates", "errors", "tiles", "digest")}
                        for k, c in stats.items() if c},
@@ -458,7 +489,8 @@ class DemoRun:
                 "chaos": a.chaos, "small": a.small, "max_km_per_drive": self.max_km,
                 "segmenter": self.kind, "images": self.d.images,
                 "chaos_events": self.chaos_events, "tile_versions": t["versions"],
-                "router": self.router_endpoint}
+                "router": self.router_endpoint,
+                "store": "postgresql" if self.store else "sqlite"}
 
     def _vehicle_stage_ms(self) -> dict:
         """Per-frame stage times of the mapping vehicles: {stage: {p50, p95}} averaged over them."""
@@ -621,11 +653,16 @@ def up_command(args, cfg: RoadmapConfig) -> int:
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     cfg = fleet_config(cfg, args.shards)
+    store = getattr(args, "store", None)
+    if store:  # the same topology on PostgreSQL: workers + tile servers (no reset: a live map)
+        cfg = pgfleet.pg_config(cfg, store)
     (out / "config.toml").write_text(to_toml(cfg))
     stop = stop_event()
     with Supervisor(out / "logs", config=out / "config.toml") as sup:
         endpoint = sup.start_router(getattr(args, "listen", None) or "tcp/127.0.0.1:7447")
-        for i in range(args.shards):
+        if store:
+            pgfleet.start_workers(sup, args.shards, store, getattr(args, "tile_servers", 1))
+        for i in range(0 if store else args.shards):
             sup.start_merger(i, args.shards, out / "run" / f"merger-s{i}.sqlite")
         vehicles = _up_vehicles(sup, args, cfg, out) if args.vehicles > 0 else []
         sys.stderr.write(f"roadmap up: router {endpoint}, {args.shards} shards, "

@@ -19,7 +19,7 @@ from common import codec, keys
 from common.bus import SampleKind, open_session, stop_event
 from common.config import RoadmapConfig, to_toml
 from common.drivelog import DriveLog
-from common.grid import owner_of_tile
+from common.grid import owner_of_tile, region_of_tile
 from common.messages import GridPatch, IngestAck, IngestBatch
 from common.segmentation import segmenter_for
 from services.vehicle.estimator import PoseEstimator, dead_reckon
@@ -161,41 +161,47 @@ class Uploader(threading.Thread):
             backoff = min(backoff * 2, v.backoff_max_s) if pending else backoff
 
     def _send_round(self, pending: list[str]) -> bool:
-        by_shard = defaultdict(list)
+        by_key = defaultdict(list)
         for pid in pending:
             patch = self._cache.get(pid) or self._cache.setdefault(pid, self.outbox.load(pid))
-            shard = owner_of_tile(patch.tile, self.cfg.grid.shards, self.cfg.grid.shard_map)
-            by_shard[shard].append(patch)
+            by_key[self._destination(patch)].append(patch)
         progressed = False
-        for shard, patches in by_shard.items():
-            if f"s{shard}" not in self.alive:
+        for (key, ident), patches in by_key.items():
+            if ident not in self.alive and not (ident is None and self.alive):
                 continue  # wait for the owner (liveliness) rather than drop
             for k in range(0, len(patches), self.cfg.vehicle.upload_batch):
                 if self.stop.is_set() or not self._send(
-                    shard, patches[k : k + self.cfg.vehicle.upload_batch]
+                    key, patches[k : k + self.cfg.vehicle.upload_batch]
                 ):
                     break
                 progressed = True
         return progressed
 
-    def _send(self, shard: int, patches: list[GridPatch]) -> bool:
+    def _destination(self, patch: GridPatch) -> tuple[str, str | None]:
+        """(ingest key, the merger that must be alive): the owner shard's key, or with
+        grid.routing = "region" the region's key (any live worker will do: the holder answers,
+        or one claims the region; common/keys.py)."""
+        if self.cfg.grid.routing == "region":
+            return keys.region_ingest(*region_of_tile(tuple(patch.tile))), None
+        shard = owner_of_tile(patch.tile, self.cfg.grid.shards, self.cfg.grid.shard_map)
+        return keys.ingest(shard), f"s{shard}"
+
+    def _send(self, key: str, patches: list[GridPatch]) -> bool:
         payload = codec.encode(IngestBatch(patches))
         self.sent += len(patches)
         self.bytes_sent += len(payload)
         self.sent_ids.update(p.patch_id for p in patches)
-        replies = self.session.get(
-            keys.ingest(shard), payload=payload, timeout=self.cfg.vehicle.upload_timeout_s
-        )
+        replies = self.session.get(key, payload=payload, timeout=self.cfg.vehicle.upload_timeout_s)
         for reply in replies:
             if reply.ok is None:
                 continue
             try:
                 ack = codec.decode(reply.ok.payload.to_bytes(), expect=IngestAck)
             except Exception as exc:  # noqa: BLE001 - a bad ack is retried like no ack
-                logger.warning("shard s%d: undecodable ack: %s", shard, exc)
+                logger.warning("%s: undecodable ack: %s", key, exc)
                 continue
             if ack.error:
-                logger.warning("shard s%d rejected a batch: %s", shard, ack.error)
+                logger.warning("%s rejected a batch: %s", key, ack.error)
                 break
             ids = {p.patch_id for p in patches}
             results = {pid: st for pid, st in ack.results.items() if pid in ids}
