@@ -80,18 +80,23 @@ class Localizer:
         self.calibration_rate = calibration_rate
         self.reinit_gnss_rejections = reinit_gnss_rejections
         self.hold_m, self.hold_below_m = hold_m, hold_below_m
+        self.rival_travel_m, self.rival_points = rival_travel_m, rival_points
+        self._start(seed)
+
+    def _start(self, seed: int) -> None:
+        """The state of a drive before its first input."""
         # equally good poses left by an ambiguous initialization (solid or periodic dashed lines
         # along a straight road), each with the dead-reckoned odometry pose at which it held, so
         # it moves with the car; weighed on the submap until the map tells them apart
         self.rivals: list[tuple[np.ndarray, np.ndarray]] = []
-        self.rival_travel_m, self.rival_points = rival_travel_m, rival_points
         self.rivals_since_m = 0.0
-        self.recent: deque = deque(maxlen=max(recent_frames, 1))  # tracking: multi-frame matching
+        # tracking: multi-frame matching
+        self.recent: deque = deque(maxlen=max(self.recent_frames, 1))
         self._rng = np.random.default_rng(seed)
         self.t_ns: int | None = None
         self.odom = np.zeros(3)  # dead-reckoned pose in an arbitrary frame (for the init submap)
         self.travel_m = 0.0
-        self.submap: deque = deque(maxlen=init_frames)  # (odom pose, points_v, classes)
+        self.submap: deque = deque(maxlen=self.init_frames)  # (odom pose, points_v, classes)
         self.gnss: deque = deque(maxlen=50)  # (odom pose, xy, sigma)
         self.bad_frames = 0
         self.inits = 0
