@@ -147,7 +147,11 @@ class LocalizerConfig:
     # along-road errors swing the scale, and the position saw-tooth with the dashes
     scale_walk_per_s: float = 3e-5  # random walk of that scale, 1/sqrt(s)
     yaw_rate_sigma_dps: float = 0.3
-    max_position_sigma_m: float = 1.0  # integrity: ok False above this
+    max_position_sigma_m: float = 1.0  # the filter trusts itself below this (re-init above)
+    # integrity: a pose is reported ok only while its protection level (integrity_k x the
+    # position sigma) lies within the alert limit: a lane-level error must never read as ok
+    alert_limit_m: float = 0.5
+    integrity_k: float = 3.0
     init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
     init_travel_m: float = 12.0  # metres of frames gathered before the coarse search
     init_frames: int = 30

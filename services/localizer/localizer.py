@@ -62,6 +62,8 @@ class Localizer:
         hold_below_m: float = LocalizerConfig.hold_below_m,
         rival_travel_m: float = 200.0,
         rival_points: int = 4000,
+        alert_limit_m: float = LocalizerConfig.alert_limit_m,
+        integrity_k: float = LocalizerConfig.integrity_k,
         seed: int = 0,
     ):
         self.cache, self.icp, self.ekf, self.search = cache, icp, ekf, search
@@ -81,6 +83,7 @@ class Localizer:
         self.reinit_gnss_rejections = reinit_gnss_rejections
         self.hold_m, self.hold_below_m = hold_m, hold_below_m
         self.rival_travel_m, self.rival_points = rival_travel_m, rival_points
+        self.alert_limit_m, self.integrity_k = alert_limit_m, integrity_k
         self._start(seed)
 
     def _start(self, seed: int) -> None:
@@ -166,7 +169,10 @@ class Localizer:
         self._watch_integrity(result, accepted)
         if self.rivals and self.ekf.initialized:
             diag["rivals"] = self._weigh_rivals()
-        ok = self.ekf.ok and not self.rivals  # an unresolved ambiguity is not a trusted pose
+        # an unresolved ambiguity is not a trusted pose, nor one whose protection level
+        # exceeds the alert limit
+        ok = (self.ekf.ok and not self.rivals
+              and self.integrity_k * self.ekf.position_sigma_m <= self.alert_limit_m)
         return Estimate(t_ns, self.ekf.vehicle_pose, self.ekf.cov, ok, diag)
 
     # -- steps ------------------------------------------------------------------------------
@@ -469,6 +475,8 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         hold_below_m=lc.hold_below_m,
         recent_frames=lc.recent_frames,
         track_gate_m=lc.icp_track_gate_m,
+        alert_limit_m=lc.alert_limit_m,
+        integrity_k=lc.integrity_k,
         seed=seed,
     )
 

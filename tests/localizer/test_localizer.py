@@ -249,3 +249,18 @@ def test_ipm_noise_weighs_far_residuals_along_the_ray_less():
     assert w[0] < 0.1  # 12 m from the camera, along the ray: 0.2 m per pixel
     assert w[1] > 0.7  # the same point across the ray: 3 cm per pixel
     assert w[2] > 0.8  # 4 m ahead along the ray
+
+
+def test_a_pose_whose_protection_level_exceeds_the_alert_limit_is_not_ok(road_cache, rng):
+    """integrity: ok only while integrity_k x the position sigma lies within the alert limit;
+    the same drive with a looser limit reports the very same poses as ok."""
+    streams = synthetic_drive(rng, duration_s=12.0, gnss_bias_m=(3.0, -3.5))
+    frames = [frame_points(road_cache, p, rng) for p in streams["frame_pose_true"]]
+    strict = replay(get_localizer(LocalizerConfig(alert_limit_m=0.05), road_cache), streams,
+                    lambda i: frames[i])
+    loose = replay(get_localizer(LocalizerConfig(alert_limit_m=100.0), road_cache), streams,
+                   lambda i: frames[i])
+    sigma = [math.sqrt(np.linalg.eigvalsh(e.cov[:2, :2])[-1]) for e in strict]
+    assert any(e.ok for e in loose) and not any(
+        e.ok for e, s in zip(strict, sigma, strict=True) if 3.0 * s > 0.05)
+    assert np.allclose([e.pose for e in strict], [e.pose for e in loose], equal_nan=True)
