@@ -34,6 +34,13 @@ class BusConfig:
     lease_ms: int = 3000  # failure detection of hung processes (ZENOH.md 1.6)
     shared_memory: bool = False  # off: avoids zenoh#2628 (SHM query/reply drops under load)
     query_timeout_s: float = 5.0
+    # mutual TLS (common/security.py, deploy/README.md): a folder with ca.pem and <role>.pem +
+    # <role>.key for the roles that run here (`roadmap certs`); endpoints must then be tls/...
+    # and a router enforces the role ACL. Empty: plain tcp, no access control
+    tls_dir: str = ""
+    # largest message a link reassembles (transport/link/rx/max_message_size; zenoh's default
+    # is 1 GiB): what one sender can make a router or client buffer per message
+    max_message_bytes: int = 64 << 20
 
 
 @dataclass(frozen=True)
@@ -362,6 +369,7 @@ def load_config(
 def _validate(cfg: RoadmapConfig) -> None:
     if cfg.grid.shards < 1:
         raise ConfigError("grid.shards must be >= 1")
+    check_bus_endpoints(cfg.bus)
     if cfg.bus.mode not in ("client", "peer", "router"):
         raise ConfigError(f"bus.mode must be client, peer or router, got {cfg.bus.mode!r}")
     if cfg.camera.width <= 0 or cfg.camera.height <= 0:
@@ -374,6 +382,14 @@ def _validate(cfg: RoadmapConfig) -> None:
     bad = [v for v in cfg.grid.shard_map.values() if not 0 <= v < cfg.grid.shards]
     if bad:
         raise ConfigError(f"grid.shard_map names shards outside [0, {cfg.grid.shards}): {bad}")
+
+
+def check_bus_endpoints(bus: BusConfig) -> None:
+    """A secure bus (tls_dir) takes tls/ endpoints only: a tcp/ one would bypass mutual TLS."""
+    endpoints = [*bus.connect, *bus.listen]
+    if bus.tls_dir and any(not e.startswith("tls/") for e in endpoints):
+        raise ConfigError(f"bus.tls_dir is set: every bus.connect and bus.listen endpoint must "
+                          f"be tls/HOST:PORT, got {endpoints}")
 
 
 def to_toml(obj, prefix: str = "") -> str:
