@@ -237,6 +237,17 @@ class MergerConfig:
     sqlite_synchronous: str = "FULL"  # FULL: the ack survives power loss, not just kill -9
     ingest_queue: int = 256
     ingest_group: int = 32  # waiting ingest queries stored in one transaction (group commit)
+    # hostile input (services/merger/throttle.py, deploy/README.md): an ingest payload larger
+    # than this is refused before it is decoded (a vehicle's 16-patch batch is well under 1 MB)
+    max_ingest_bytes: int = 8 << 20
+    # token bucket per client (the vehicle id the query carries as attachment): a query costs
+    # one token per started ingest_token_bytes of payload; over its rate a vehicle is answered
+    # "throttled" at once (it backs off and retries) and the others' queries keep flowing.
+    # <= 0: no throttle
+    ingest_rate_per_s: float = 50.0
+    ingest_burst: float = 500.0
+    ingest_token_bytes: int = 65536
+    ingest_clients: int = 4096  # buckets kept (least recently seen clients forgotten)
     # OpenCV threads per shard process (0: OpenCV's default, one per core): a shard is one
     # core's work and more shards use more cores; N shards on N cores with N threads each
     # oversubscribe them (bench_merger: 2 shards on 2 cores ~5 % faster with 1)

@@ -1,6 +1,8 @@
 """`roadmap merger --shard I --shards N [--store PATH]`: one tile merger shard on Zenoh.
 
-Ingest (`roadmap/ingest/s<I>`, complete): a bounded queue (merger.ingest_queue; full, it holds
+Ingest (`roadmap/ingest/s<I>`, complete): admitted on the RX thread before anything is
+decoded (services/merger/throttle.py: an oversized payload or a client over its rate is answered
+with an error ack at once), then a bounded queue (merger.ingest_queue; full, it holds
 the RX thread back: backpressure) drained by the main loop, which wakes as a query arrives and
 takes the queries waiting together (up to merger.ingest_group), stores their new patches in one
 transaction (group commit: one fsync), applies them and then replies each its IngestAck; a
@@ -25,10 +27,11 @@ from common.config import RoadmapConfig
 from common.contours import CODEC
 from common.errors import CodecError, ConfigError
 from common.grid import owner_of_tile
-from common.messages import ACCEPTED, IngestAck, Tile
+from common.messages import ACCEPTED, IngestAck, Stats, Tile
 from services.merger.durable import DurableShard
 from services.merger.shard import MergerShard, TileCodecCache
 from services.merger.store import ShardStore
+from services.merger.throttle import IngestGuard, NoThrottle, get_ingest_guard
 
 logger = logging.getLogger(__name__)
 
@@ -60,8 +63,11 @@ def get_durable_shard(shard: int, shards: int, store_path: str, cfg: RoadmapConf
 
 class MergerNode:
     def __init__(self, session, durable: DurableShard, *, shard: int, debounce_s: float,
-                 debounce_max_s: float = 2.0, ingest_queue: int = 256, ingest_group: int = 32):
+                 debounce_max_s: float = 2.0, ingest_queue: int = 256, ingest_group: int = 32,
+                 guard: IngestGuard | None = None):
         self.session = session
+        self.guard = guard or IngestGuard(max_bytes=codec.MAX_MESSAGE_BYTES, throttle=NoThrottle())
+        self._guard_lock = threading.Lock()
         self.durable = durable
         self.shard = shard
         self.debounce_s = debounce_s
@@ -74,7 +80,7 @@ class MergerNode:
         self.ingest_queue: queue.Queue = queue.Queue(maxsize=max(1, int(ingest_queue)))
         self.tile_queryables = {}
         self.ingest = session.declare_queryable(
-            keys.ingest(shard), Callback(self.ingest_queue.put, indirect=False), complete=True)
+            keys.ingest(shard), Callback(self._admit, indirect=False), complete=True)
         self.stats_q = session.declare_queryable(keys.stats("merger", f"s{shard}"),
                                                  self._enqueue_callback(), complete=True)
         for tile in durable.tiles():
@@ -91,6 +97,18 @@ class MergerNode:
         if tile not in self.tile_queryables:
             self.tile_queryables[tile] = self.session.declare_queryable(
                 keys.tile(*tile), self._enqueue_callback(), complete=True)
+
+    def _admit(self, query) -> None:
+        """RX thread: refuse an oversized or throttled query at once (no decode, no queue),
+        queue the others for the main loop."""
+        size = len(query.payload) if query.payload is not None else 0
+        with self._guard_lock:
+            refusal = self.guard.refusal(_client_id(query), size, time.monotonic())
+        if refusal is None:
+            self.ingest_queue.put(query)
+            return
+        with query:
+            query.reply(query.key_expr, codec.encode(IngestAck(error=refusal)))
 
     # -- main loop: ingest + debounced flush ---------------------------------------------------
 
@@ -201,7 +219,7 @@ class MergerNode:
     def _serve(self, query) -> None:
         key = str(query.key_expr)
         if key == keys.stats("merger", f"s{self.shard}"):
-            query.reply(key, codec.encode(self.durable.stats()))  # stats flush first
+            query.reply(key, codec.encode(self._stats()))  # stats flush first
             self._publish_changed()  # so every tile the stats list answers its queries now
             return
         tile = keys.parse_tile(key)
@@ -212,6 +230,22 @@ class MergerNode:
             query.reply_del(key)
         elif since is None or msg.version > since:
             query.reply(key, codec.encode(msg))
+
+
+    def _stats(self) -> Stats:
+        stats = self.durable.stats()
+        with self._guard_lock:
+            counters = {**stats.counters, **self.guard.counters}
+        return Stats(role=stats.role, ident=stats.ident, counters=counters)
+
+
+def _client_id(query) -> str:
+    """The sender's vehicle id (the query's attachment, as the vehicle's uploader sets it), ""
+    when there is none. Self-declared: deploy/README.md says what that does and does not stop."""
+    attachment = query.attachment
+    if attachment is None:
+        return ""
+    return attachment.to_bytes()[:codec.MAX_ID_CHARS].decode("utf-8", "replace")
 
 
 def _tile_selector(parameters) -> tuple[int | None, str]:
@@ -234,12 +268,13 @@ def main(args, cfg: RoadmapConfig) -> int:
     store_path = args.store or f"merger-s{args.shard}.sqlite"
     durable = get_durable_shard(args.shard, args.shards, store_path, cfg)
     try:
-        with open_session(cfg.bus) as session:
+        with open_session(cfg.bus, "merger") as session:
             node = MergerNode(session, durable, shard=args.shard,
                               debounce_s=cfg.merger.debounce_s,
                               debounce_max_s=cfg.merger.debounce_max_s,
                               ingest_queue=cfg.merger.ingest_queue,
-                              ingest_group=cfg.merger.ingest_group)
+                              ingest_group=cfg.merger.ingest_group,
+                              guard=get_ingest_guard(cfg.merger))
             logger.info("merger s%d/%d serving", args.shard, args.shards)
             node.run(stop)
     finally:
