@@ -14,7 +14,7 @@ import threading
 import zenoh
 
 from common import security
-from common.config import BusConfig, check_bus_endpoints
+from common.config import BusConfig
 from common.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -47,13 +47,20 @@ def make_zenoh_config(bus: BusConfig, role: str | None = None) -> zenoh.Config:
 def _secure(conf: zenoh.Config, bus: BusConfig, role: str | None) -> None:
     if role is None:
         raise ConfigError("bus.tls_dir is set: this process needs a role for its certificate")
-    check_bus_endpoints(bus)
     router = bus.mode == "router"
+    check_secure_endpoints(bus.listen or bus.connect[:1] if router else bus.connect + bus.listen)
     for key, value in security.tls_settings(bus.tls_dir, role, listen=router or bool(bus.listen)
                                             ).items():
         conf.insert_json5(key, json.dumps(value))
     if router:
         conf.insert_json5("access_control", json.dumps(security.acl_config()))
+
+
+def check_secure_endpoints(endpoints) -> None:
+    """On a secure bus every endpoint is tls/: a tcp/ one would bypass mutual TLS and the ACL."""
+    if any(not e.startswith("tls/") for e in endpoints):
+        raise ConfigError(f"bus.tls_dir is set: endpoints must be tls/HOST:PORT, got "
+                          f"{list(endpoints)}")
 
 
 @contextlib.contextmanager
@@ -87,6 +94,8 @@ def run_router(listen: list[str], stop: threading.Event, peers: list[str] | None
     bus = BusConfig(mode="router", listen=listen, connect=[], tls_dir=tls_dir)
     conf = make_zenoh_config(bus, "router")
     if peers:
+        if tls_dir:
+            check_secure_endpoints(peers)
         conf.insert_json5("connect/endpoints", json.dumps(peers))
     session = zenoh.open(conf)
     try:

@@ -380,7 +380,6 @@ def load_config(
 def _validate(cfg: RoadmapConfig) -> None:
     if cfg.grid.shards < 1:
         raise ConfigError("grid.shards must be >= 1")
-    check_bus_endpoints(cfg.bus)
     if cfg.bus.mode not in ("client", "peer", "router"):
         raise ConfigError(f"bus.mode must be client, peer or router, got {cfg.bus.mode!r}")
     if cfg.camera.width <= 0 or cfg.camera.height <= 0:
@@ -393,14 +392,6 @@ def _validate(cfg: RoadmapConfig) -> None:
     bad = [v for v in cfg.grid.shard_map.values() if not 0 <= v < cfg.grid.shards]
     if bad:
         raise ConfigError(f"grid.shard_map names shards outside [0, {cfg.grid.shards}): {bad}")
-
-
-def check_bus_endpoints(bus: BusConfig) -> None:
-    """A secure bus (tls_dir) takes tls/ endpoints only: a tcp/ one would bypass mutual TLS."""
-    endpoints = [*bus.connect, *bus.listen]
-    if bus.tls_dir and any(not e.startswith("tls/") for e in endpoints):
-        raise ConfigError(f"bus.tls_dir is set: every bus.connect and bus.listen endpoint must "
-                          f"be tls/HOST:PORT, got {endpoints}")
 
 
 def to_toml(obj, prefix: str = "") -> str:

@@ -56,7 +56,8 @@ def write_certs(out: str | os.PathLike, *, hosts: tuple[str, ...] = (), days: in
             ca_cert = x509.load_pem_x509_certificate((out / CA_CERT).read_bytes())
             ca_key = serialization.load_pem_private_key((out / CA_KEY).read_bytes(), None)
         except (OSError, ValueError) as exc:
-            raise ConfigError(f"--reuse-ca needs {out / CA_CERT} and {out / CA_KEY}: {exc}") from exc
+            raise ConfigError(f"reusing the CA needs {out / CA_CERT} and {out / CA_KEY}: "
+                              f"{exc}") from exc
     else:
         ca_key = ec.generate_private_key(ec.SECP256R1())
         ca_cert = _ca_certificate(ca_key, now, days)
@@ -203,8 +204,8 @@ ROLE_RULES: dict[str, dict[str, list[tuple[list[str], list[str]]]]] = {
                      ["roadmap/ingest/*", "roadmap/tile/*/*", "roadmap/stats/merger/*"]),
                     (["put"], ["roadmap/tile-update/*/*"]),
                     (["liveliness_token"], [f"{_ALIVE}/merger/*"])],
-        # queries reach it on the keys it serves (and a monitor's roadmap/stats/** sweep)
-        "egress": [(["query"], ["roadmap/ingest/*", "roadmap/tile/*/*", "roadmap/stats/**"])],
+        "egress": [(["query"],
+                    ["roadmap/ingest/*", "roadmap/tile/*/*", "roadmap/stats/merger/*"])],
     },
     "monitor": {
         "ingress": [(["query"], ["roadmap/stats/**"]),
