@@ -32,6 +32,7 @@ COMMANDS = {
     "bench": "services.demo.bench:bench_command",
     "train-seg": "services.segtrain.train:train_command",
     "dump-config": "services.cli:dump_config",
+    "certs": "services.certs:command",
 }
 
 
@@ -112,6 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
         else:
             p.add_argument("--listen", default=None,
                            help="router endpoint (default tcp/127.0.0.1:7447)")
+        p.add_argument("--secure", nargs="?", const="", default=None, metavar="DIR",
+                       help="mutual TLS + role ACL with the certificates in DIR (roadmap certs); "
+                            "without DIR, throwaway ones in OUT/certs")
         _common(p)
 
     p = sub.add_parser("bench", help="benchmark every stage and write bench.json")
@@ -274,7 +278,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("dump-config", help="print the effective configuration as TOML")
     _common(p)
+    _certs_parser(sub)
     return parser
+
+
+def _certs_parser(sub) -> None:
+    p = sub.add_parser("certs", help="write a CA and a certificate + key per role")
+    p.add_argument("--out", required=True, help="directory for ca.pem, <role>.pem, <role>.key")
+    p.add_argument("--host", action="append", default=[],
+                   help="another name of the router (repeatable; localhost, 127.0.0.1, ::1 and "
+                        "zenoh-router are always in)")
+    p.add_argument("--days", type=int, default=365, help="validity (default 365)")
+    p.add_argument("--reuse-ca", action="store_true",
+                   help="keep DIR's ca.pem + ca.key and issue new role certificates (rotation)")
+    p.add_argument("--log-level", default="INFO")
 
 
 def dump_config(args, cfg) -> int:

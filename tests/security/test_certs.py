@@ -1,0 +1,52 @@
+"""`roadmap certs`: a CA and a certificate + key per role, common name = role, keys private;
+--reuse-ca issues new role certificates under the same CA (rotation)."""
+
+import stat
+
+from cryptography import x509
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from common.security import ROLES
+from tests.conftest import roadmap
+
+
+def _cert(path):
+    return x509.load_pem_x509_certificate(path.read_bytes())
+
+
+def test_certs_writes_a_ca_and_every_role(tmp_path):
+    res = roadmap("certs", "--out", tmp_path, "--host", "router.example.org", timeout=60)
+    assert res.returncode == 0, res.stderr
+    ca = _cert(tmp_path / "ca.pem")
+    assert ca.extensions.get_extension_for_class(x509.BasicConstraints).value.ca
+    for role in ROLES:
+        cert = _cert(tmp_path / f"{role}.pem")
+        assert cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == role
+        assert cert.issuer == ca.subject
+        cert.verify_directly_issued_by(ca)
+        eku = cert.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value
+        assert {ExtendedKeyUsageOID.CLIENT_AUTH, ExtendedKeyUsageOID.SERVER_AUTH} <= set(eku)
+        assert stat.S_IMODE((tmp_path / f"{role}.key").stat().st_mode) == 0o600
+    names = _cert(tmp_path / "router.pem").extensions.get_extension_for_class(
+        x509.SubjectAlternativeName).value
+    assert {"localhost", "zenoh-router", "router.example.org"} <= set(
+        names.get_values_for_type(x509.DNSName))
+
+
+def test_reuse_ca_rotates_role_certificates_only(tmp_path):
+    assert roadmap("certs", "--out", tmp_path).returncode == 0
+    ca_before = (tmp_path / "ca.pem").read_bytes()
+    old = _cert(tmp_path / "vehicle.pem")
+    res = roadmap("certs", "--out", tmp_path, "--reuse-ca", "--days", "30")
+    assert res.returncode == 0, res.stderr
+    assert (tmp_path / "ca.pem").read_bytes() == ca_before
+    new = _cert(tmp_path / "vehicle.pem")
+    assert new.serial_number != old.serial_number
+    new.verify_directly_issued_by(_cert(tmp_path / "ca.pem"))
+    days = (new.not_valid_after_utc - new.not_valid_before_utc).days
+    assert 29 <= days <= 30
+
+
+def test_reuse_ca_without_a_ca_is_a_one_line_error(tmp_path):
+    res = roadmap("certs", "--out", tmp_path, "--reuse-ca")
+    assert res.returncode == 1 and "ca.pem" in res.stderr and "Traceback" not in res.stderr
