@@ -24,6 +24,7 @@ from services.demo import evaluate as ev
 from services.demo import figures
 from services.demo.fetch import load_tiles, run_fetch
 from services.demo.procs import ProcessError, Supervisor
+from services.demo.secure import fleet_scheme, secure_fleet
 
 logger = logging.getLogger("roadmap.demo")
 
@@ -50,6 +51,7 @@ class DemoRun:
 
     def __init__(self, args, cfg: RoadmapConfig):
         cfg = fleet_config(cfg, args.shards)
+        cfg = secure_fleet(cfg, getattr(args, "secure", None), Path(args.out).resolve())
         if args.vehicles < 1 or args.shards < 1:
             raise ConfigError("roadmap demo needs --vehicles >= 1 and --shards >= 1")
         if cfg.demo.segmenter not in ("truth", "onnx"):
@@ -631,10 +633,12 @@ def up_command(args, cfg: RoadmapConfig) -> int:
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     cfg = fleet_config(cfg, args.shards)
+    cfg = secure_fleet(cfg, getattr(args, "secure", None), out)
     (out / "config.toml").write_text(to_toml(cfg))
     stop = stop_event()
     with Supervisor(out / "logs", config=out / "config.toml") as sup:
-        endpoint = sup.start_router(getattr(args, "listen", None) or "tcp/127.0.0.1:7447")
+        endpoint = sup.start_router(getattr(args, "listen", None)
+                                    or f"{fleet_scheme()}/127.0.0.1:7447")
         for i in range(args.shards):
             sup.start_merger(i, args.shards, out / "run" / f"merger-s{i}.sqlite")
         vehicles = _up_vehicles(sup, args, cfg, out) if args.vehicles > 0 else []
