@@ -242,12 +242,17 @@ class MergerConfig:
     max_ingest_bytes: int = 8 << 20
     # token bucket per client (the vehicle id the query carries as attachment): a query costs
     # one token per started ingest_token_bytes of payload; over its rate a vehicle is answered
-    # "throttled" at once (it backs off and retries) and the others' queries keep flowing.
-    # <= 0: no throttle
-    ingest_rate_per_s: float = 50.0
-    ingest_burst: float = 500.0
-    ingest_token_bytes: int = 65536
+    # "throttled" at once (it backs off and retries) and the others' queries keep flowing. A
+    # vehicle seals a patch per tile about every 10 s of driving; the burst covers the backlog of
+    # a long outage (200 batches of 16 patches). <= 0: no throttle (services/merger/flood.py
+    # measures it: one flooding vehicle against three normal ones)
+    ingest_rate_per_s: float = 20.0
+    ingest_burst: float = 200.0
+    ingest_token_bytes: int = 256 << 10
     ingest_clients: int = 4096  # buckets kept (least recently seen clients forgotten)
+    # a throttled query's ack is sent this late (at most ingest_queue of them held at once):
+    # a sender that retries without backing off still sends no faster than one per delay
+    throttle_delay_s: float = 1.0
     # OpenCV threads per shard process (0: OpenCV's default, one per core): a shard is one
     # core's work and more shards use more cores; N shards on N cores with N threads each
     # oversubscribe them (bench_merger: 2 shards on 2 cores ~5 % faster with 1)

@@ -1,8 +1,9 @@
 """`roadmap merger --shard I --shards N [--store PATH]`: one tile merger shard on Zenoh.
 
 Ingest (`roadmap/ingest/s<I>`, complete): admitted on the RX thread before anything is
-decoded (services/merger/throttle.py: an oversized payload or a client over its rate is answered
-with an error ack at once), then a bounded queue (merger.ingest_queue; full, it holds
+decoded (services/merger/throttle.py: an oversized payload is answered with an error ack at
+once; a client over its rate gets its `throttled` ack merger.throttle_delay_s later, so a sender
+that ignores the backoff still waits), then a bounded queue (merger.ingest_queue; full, it holds
 the RX thread back: backpressure) drained by the main loop, which wakes as a query arrives and
 takes the queries waiting together (up to merger.ingest_group), stores their new patches in one
 transaction (group commit: one fsync), applies them and then replies each its IngestAck; a
@@ -14,6 +15,7 @@ quiet for `merger.debounce_s` (at the latest `merger.debounce_max_s` after a cha
 batches keep coming) and published on `roadmap/tile-update/<tx>/<ty>`. Liveliness token
 `roadmap/alive/merger/s<I>` once recovery is done. Runs until SIGTERM/SIGINT."""
 
+import collections
 import logging
 import queue
 import threading
@@ -27,7 +29,7 @@ from common.config import RoadmapConfig
 from common.contours import CODEC
 from common.errors import CodecError, ConfigError
 from common.grid import owner_of_tile
-from common.messages import ACCEPTED, IngestAck, Stats, Tile
+from common.messages import ACCEPTED, THROTTLED, IngestAck, Stats, Tile
 from services.merger.durable import DurableShard
 from services.merger.shard import MergerShard, TileCodecCache
 from services.merger.store import ShardStore
@@ -64,10 +66,13 @@ def get_durable_shard(shard: int, shards: int, store_path: str, cfg: RoadmapConf
 class MergerNode:
     def __init__(self, session, durable: DurableShard, *, shard: int, debounce_s: float,
                  debounce_max_s: float = 2.0, ingest_queue: int = 256, ingest_group: int = 32,
-                 guard: IngestGuard | None = None):
+                 guard: IngestGuard | None = None, throttle_delay_s: float = 0.0):
         self.session = session
         self.guard = guard or IngestGuard(max_bytes=codec.MAX_MESSAGE_BYTES, throttle=NoThrottle())
         self._guard_lock = threading.Lock()
+        self.throttle_delay_s = throttle_delay_s
+        self.held_max = max(1, int(ingest_queue))  # throttled queries held back, at most
+        self._held: collections.deque = collections.deque()  # (release time, query, reply)
         self.durable = durable
         self.shard = shard
         self.debounce_s = debounce_s
@@ -107,8 +112,20 @@ class MergerNode:
         if refusal is None:
             self.ingest_queue.put(query)
             return
+        reply = codec.encode(IngestAck(error=refusal))
+        if (refusal.startswith(THROTTLED) and self.throttle_delay_s > 0
+                and len(self._held) < self.held_max):
+            self._held.append((time.monotonic() + self.throttle_delay_s, query, reply))
+            return
         with query:
-            query.reply(query.key_expr, codec.encode(IngestAck(error=refusal)))
+            query.reply(query.key_expr, reply)
+
+    def _release_held(self, now_s: float) -> None:
+        """Answer the held throttled queries that are due (all of them at `now_s` = inf)."""
+        while self._held and self._held[0][0] <= now_s:
+            _, query, reply = self._held.popleft()
+            with query:
+                query.reply(query.key_expr, reply)
 
     # -- main loop: ingest + debounced flush ---------------------------------------------------
 
@@ -121,7 +138,9 @@ class MergerNode:
                 group = self._waiting_ingest(IDLE_WAIT_S)
                 if group:
                     self._handle_ingest(group)
+                self._release_held(time.monotonic())
         finally:
+            self._release_held(float("inf"))
             self._stop.set()
             self.flushing.join(timeout=30.0)
             self.serving.join(timeout=2.0)
@@ -274,7 +293,8 @@ def main(args, cfg: RoadmapConfig) -> int:
                               debounce_max_s=cfg.merger.debounce_max_s,
                               ingest_queue=cfg.merger.ingest_queue,
                               ingest_group=cfg.merger.ingest_group,
-                              guard=get_ingest_guard(cfg.merger))
+                              guard=get_ingest_guard(cfg.merger),
+                              throttle_delay_s=cfg.merger.throttle_delay_s)
             logger.info("merger s%d/%d serving", args.shard, args.shards)
             node.run(stop)
     finally:

@@ -64,7 +64,7 @@ class IngestGuard:
 
     max_bytes: int
     throttle: ClientThrottle | NoThrottle
-    token_bytes: int = 65536
+    token_bytes: int = 256 << 10
     counters: dict = field(default_factory=lambda: {"refused_oversize": 0, "throttled": 0})
 
     def refusal(self, client: str, size: int, now_s: float) -> str | None:

@@ -50,7 +50,7 @@ def fleet(tmp_path_factory):
     env = dict(os.environ, ROADMAP_BUS__TLS_DIR=str(certs), ROADMAP_MERGER__DEBOUNCE_S="0.1",
                ROADMAP_MERGER__MAX_INGEST_BYTES=str(MAX_INGEST_BYTES),
                ROADMAP_MERGER__INGEST_RATE_PER_S=str(RATE),
-               ROADMAP_MERGER__INGEST_BURST=str(BURST))
+               ROADMAP_MERGER__INGEST_BURST=str(BURST), ROADMAP_MERGER__THROTTLE_DELAY_S="0.05")
     router = spawn("router", "--listen", endpoint, env=env)
     merger = None
     try:
