@@ -241,4 +241,14 @@ def acl_config() -> dict:
 
 
 def acl_json5() -> str:
-    return json.dumps(acl_config(), indent=2)
+    """acl_config() as JSON (valid JSON5), one rule, subject or policy a line."""
+    acl = acl_config()
+    lines = ["{"]
+    for key, value in acl.items():
+        if isinstance(value, list):
+            lines.append(f'  "{key}": [')
+            lines += [f"    {json.dumps(item)}," for item in value]
+            lines.append("  ],")
+        else:
+            lines.append(f'  "{key}": {json.dumps(value)},')
+    return "\n".join(lines) + "\n}"

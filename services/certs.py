@@ -14,3 +14,19 @@ def command(args, cfg) -> int:
     sys.stdout.writelines(f"  {p}\n" for p in written)
     sys.stdout.write("ca.key signs new certificates: keep it off the machines that run roles\n")
     return 0
+
+
+def render_acl() -> str:
+    """deploy/acl.json5: the router's access_control section as common.security builds it."""
+    from common.security import acl_json5
+
+    return ("// The role ACL of a RoadMap router (`access_control` of a Zenoh 1.x config),\n"
+            "// generated from common/security.py ROLE_RULES:\n"
+            "//   python -m services.certs > deploy/acl.json5\n"
+            "// Default deny; subjects are certificate common names over mutual TLS (one per\n"
+            "// role); `roadmap router` with bus.tls_dir applies it (deploy/README.md).\n"
+            + acl_json5() + "\n")
+
+
+if __name__ == "__main__":
+    sys.stdout.write(render_acl())

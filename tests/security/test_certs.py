@@ -50,3 +50,22 @@ def test_reuse_ca_rotates_role_certificates_only(tmp_path):
 def test_reuse_ca_without_a_ca_is_a_one_line_error(tmp_path):
     res = roadmap("certs", "--out", tmp_path, "--reuse-ca")
     assert res.returncode == 1 and "ca.pem" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_deploy_acl_is_the_one_the_router_applies():
+    """deploy/acl.json5 is generated: python -m services.certs > deploy/acl.json5"""
+    import json
+
+    import zenoh
+
+    from common.security import acl_config
+    from services.certs import render_acl
+    from tests.conftest import REPO
+
+    text = (REPO / "deploy" / "acl.json5").read_text()
+    assert text == render_acl(), "stale: python -m services.certs > deploy/acl.json5"
+    conf = zenoh.Config()
+    conf.insert_json5("access_control", text)  # zenoh's own json5 parser takes it
+    parsed = json.loads(conf.get_json("access_control"))
+    assert parsed["default_permission"] == "deny" and parsed["enabled"] is True
+    assert [r["id"] for r in parsed["rules"]] == [r["id"] for r in acl_config()["rules"]]
