@@ -69,3 +69,24 @@ def test_deploy_acl_is_the_one_the_router_applies():
     parsed = json.loads(conf.get_json("access_control"))
     assert parsed["default_permission"] == "deny" and parsed["enabled"] is True
     assert [r["id"] for r in parsed["rules"]] == [r["id"] for r in acl_config()["rules"]]
+
+
+def test_compose_secure_mounts_each_role_its_own_key_only():
+    yaml = __import__("pytest").importorskip("yaml")
+    from tests.conftest import REPO
+
+    base = yaml.safe_load((REPO / "compose.yaml").read_text())["services"]
+    secure = yaml.safe_load((REPO / "compose.secure.yaml").read_text())["services"]
+    assert set(secure) <= set(base)  # an override of compose.yaml's services
+    roles = {"zenoh-router": "router", "merger-0": "merger", "merger-1": "merger",
+             "vehicle": "vehicle", "localizer": "localizer"}
+    for name, role in roles.items():
+        mounts = [v.rsplit(":", 2)[1] for v in secure[name]["volumes"]]  # HOST:PATH:ro
+        keys = {m for m in mounts if m.endswith(".key")}
+        allowed = {f"/certs/{role}.key"} | ({"/certs/monitor.key"} if role == "merger" else set())
+        assert keys == allowed and "/certs/ca.key" not in mounts, name
+        assert "/certs/ca.pem" in mounts and f"/certs/{role}.pem" in mounts
+        assert secure[name]["environment"]["ROADMAP_BUS__TLS_DIR"] == "/certs"
+        if role != "router":
+            assert secure[name]["environment"]["ROADMAP_BUS__CONNECT"].startswith('["tls/')
+    assert secure["zenoh-router"]["command"][:3] == ["router", "--listen", "tls/[::]:7447"]
