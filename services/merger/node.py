@@ -104,11 +104,12 @@ class MergerNode:
                 keys.tile(*tile), self._enqueue_callback(), complete=True)
 
     def _admit(self, query) -> None:
-        """RX thread: refuse an oversized or throttled query at once (no decode, no queue),
-        queue the others for the main loop."""
-        size = len(query.payload) if query.payload is not None else 0
+        """RX thread: answer an oversized query at once and hold a throttled one's answer for
+        throttle_delay_s (neither is decoded nor queued); queue the others for the main loop."""
+        size = sum(len(z) for z in (query.payload, query.attachment) if z is not None)
+        client = _client_id(query) if size <= self.guard.max_bytes else ""
         with self._guard_lock:
-            refusal = self.guard.refusal(_client_id(query), size, time.monotonic())
+            refusal = self.guard.refusal(client, size, time.monotonic())
         if refusal is None:
             self.ingest_queue.put(query)
             return
@@ -249,7 +250,6 @@ class MergerNode:
             query.reply_del(key)
         elif since is None or msg.version > since:
             query.reply(key, codec.encode(msg))
-
 
     def _stats(self) -> Stats:
         stats = self.durable.stats()
