@@ -295,3 +295,29 @@ def test_a_flooding_vehicle_is_throttled_and_the_others_are_not(fleet):
                      client="veh-n")
         assert ok is not None and ok.error is None  # another vehicle is admitted meanwhile
     assert _stats(fleet)["throttled"] >= len(throttled)
+
+
+def test_meshed_secure_routers_carry_a_role_s_work_and_its_limits(fleet):
+    """A second router meshed to the first over mTLS (its router certificate): a vehicle on it
+    reaches the shard behind the first; a localizer on it still cannot ingest."""
+    from common.bus import free_tcp_port
+
+    port = free_tcp_port()
+    second = f"tls/127.0.0.1:{port}"
+    env = dict(os.environ, ROADMAP_BUS__TLS_DIR=str(fleet["certs"]))
+    router_b = spawn("router", "--listen", second, "--peer", fleet["endpoint"], env=env)
+    try:
+        assert wait_for_tcp("127.0.0.1", port, 15.0)
+        bus_b = BusConfig(connect=[second], tls_dir=str(fleet["certs"]))
+        with open_session(bus_b, "vehicle") as veh, open_session(bus_b, "localizer") as loc:
+            deadline = time.monotonic() + 15
+            while not list(veh.liveliness().get(keys.alive("merger", "s0"), timeout=1.0)):
+                assert time.monotonic() < deadline, "the shard is not seen through the mesh"
+                time.sleep(0.2)
+            ack = _ingest(veh, codec.encode(IngestBatch(_patches("via-b", "veh-b"))),
+                          client="veh-b")
+            assert ack is not None and ack.error is None
+            payload = codec.encode(IngestBatch(_patches("loc-via-b")))
+            assert _replies(loc, keys.ingest(0), payload=payload) == []
+    finally:
+        _stop(router_b)
