@@ -36,6 +36,13 @@ class BusConfig:
     lease_ms: int = 3000  # failure detection of hung processes (ZENOH.md 1.6)
     shared_memory: bool = False  # off: avoids zenoh#2628 (SHM query/reply drops under load)
     query_timeout_s: float = 5.0
+    # mutual TLS (common/security.py, deploy/README.md): a folder with ca.pem and <role>.pem +
+    # <role>.key for the roles that run here (`roadmap certs`); endpoints must then be tls/...
+    # and a router enforces the role ACL. Empty: plain tcp, no access control
+    tls_dir: str = ""  # folder of ca.pem + <role>.pem/.key: mutual TLS and the role ACL
+    # largest message a link reassembles (transport/link/rx/max_message_size; zenoh's default
+    # is 1 GiB): what one sender can make a router or client buffer per message
+    max_message_bytes: int = 64 << 20  # largest message a link reassembles (0: zenoh's 1 GiB)
 
 
 @dataclass(frozen=True)
@@ -205,6 +212,22 @@ class MergerConfig:
     sqlite_synchronous: str = "FULL"  # FULL: the ack survives power loss, not just kill -9
     ingest_queue: int = 256
     ingest_group: int = 32  # waiting ingest queries stored in one transaction (group commit)
+    # hostile input (services/merger/throttle.py, deploy/README.md): an ingest payload larger
+    # than this is refused before it is decoded (a vehicle's 16-patch batch is well under 1 MB)
+    max_ingest_bytes: int = 8 << 20  # larger ingest payloads are refused before decoding
+    # token bucket per client (the vehicle id the query carries as attachment): a query costs
+    # one token per started ingest_token_bytes of payload; over its rate a vehicle is answered
+    # "throttled" at once (it backs off and retries) and the others' queries keep flowing. A
+    # vehicle seals a patch per tile about every 10 s of driving; the burst covers the backlog of
+    # a long outage (200 batches of 16 patches). <= 0: no throttle (services/merger/flood.py
+    # measures it: one flooding vehicle against three normal ones)
+    ingest_rate_per_s: float = 20.0  # tokens per second per vehicle (<= 0: no throttle)
+    ingest_burst: float = 200.0  # a vehicle's bucket size
+    ingest_token_bytes: int = 256 << 10  # a query costs a token per started this many bytes
+    ingest_clients: int = 4096  # buckets kept (least recently seen clients forgotten)
+    # a throttled query's ack is sent this late (at most ingest_queue of them held at once):
+    # a sender that retries without backing off still sends no faster than one per delay
+    throttle_delay_s: float = 1.0  # a throttled query is answered this late
     # a shard is one core's work: N shards with N threads each oversubscribe N cores
     opencv_threads: int = 1  # OpenCV threads per shard process (0: OpenCV's, one per core)
     # durable store: "" = one SQLite file per shard (the embedded default); "postgresql://..."

@@ -33,6 +33,7 @@ COMMANDS = {
     "bench": "services.bench.runner:bench_command",
     "eval": "services.eval.command:eval_command",
     "dump-config": "services.cli:dump_config",
+    "certs": "services.certs:command",
 }
 
 
@@ -125,8 +126,15 @@ def _fleet(p: argparse.ArgumentParser) -> None:
                    help="read-only tile servers beside the workers (with --store)")
 
 
+def _secure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--secure", nargs="?", const="", default=None, metavar="DIR",
+                   help="mutual TLS + role ACL with the certificates in DIR (roadmap certs); "
+                        "without DIR, throwaway ones in OUT/certs")
+
+
 def _demo(p: argparse.ArgumentParser) -> None:
     _fleet(p)
+    _secure(p)
     p.add_argument("--scenario", choices=["default", "repaint"], default="default")
     p.add_argument("--chaos", action="store_true", help="kill and restart a shard and a vehicle")
     p.add_argument("--small", action="store_true", help="a short drive (for tests)")
@@ -135,6 +143,7 @@ def _demo(p: argparse.ArgumentParser) -> None:
 
 def _up(p: argparse.ArgumentParser) -> None:
     _fleet(p)
+    _secure(p)
     p.add_argument("--listen", default=None, help="router endpoint (default tcp/127.0.0.1:7447)")
     _common(p)
 
@@ -156,6 +165,17 @@ def _eval(p: argparse.ArgumentParser) -> None:
     _common(p)
 
 
+def _certs(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", required=True, help="directory for ca.pem, <role>.pem, <role>.key")
+    p.add_argument("--host", action="append", default=[],
+                   help="another name of the router (repeatable; localhost, 127.0.0.1, ::1 and "
+                        "zenoh-router are always in)")
+    p.add_argument("--days", type=int, default=365, help="validity (default 365)")
+    p.add_argument("--reuse-ca", action="store_true",
+                   help="keep DIR's ca.pem + ca.key and issue new role certificates (rotation)")
+    p.add_argument("--log-level", default="INFO")
+
+
 # subcommand -> (help, its options)
 PARSERS = {
     "sim": ("simulate drives and write drive logs", _sim),
@@ -170,6 +190,7 @@ PARSERS = {
     "up": ("start the deployment topology as local processes", _up),
     "bench": ("benchmark every stage and write bench.json", _bench),
     "eval": ("run the evaluation suite and write eval.json", _eval),
+    "certs": ("write a CA and a certificate + key per role", _certs),
     "dump-config": ("print the effective configuration as TOML", _common),
 }
 

@@ -24,6 +24,7 @@ from services.demo import evaluate as ev
 from services.demo import figures, pgfleet
 from services.demo.fetch import load_tiles, run_fetch
 from services.demo.procs import ProcessError, Supervisor
+from services.demo.secure import fleet_scheme, secure_fleet
 
 logger = logging.getLogger("roadmap.demo")
 
@@ -57,6 +58,7 @@ class DemoRun:
             raise ConfigError(f"--store must be postgresql://..., got {self.store!r}")
         self.dead: set[str] = set()  # shards killed by --chaos and not restarted
         self.takeover_s: float | None = None
+        cfg = secure_fleet(cfg, getattr(args, "secure", None), Path(args.out).resolve())
         if args.vehicles < 1 or args.shards < 1:
             raise ConfigError("roadmap demo needs --vehicles >= 1 and --shards >= 1")
         self.args, self.cfg, self.d = args, cfg, cfg.demo
@@ -656,10 +658,12 @@ def up_command(args, cfg: RoadmapConfig) -> int:
     store = getattr(args, "store", None)
     if store:  # the same topology on PostgreSQL: workers + tile servers (no reset: a live map)
         cfg = pgfleet.pg_config(cfg, store)
+    cfg = secure_fleet(cfg, getattr(args, "secure", None), out)
     (out / "config.toml").write_text(to_toml(cfg))
     stop = stop_event()
     with Supervisor(out / "logs", config=out / "config.toml") as sup:
-        endpoint = sup.start_router(getattr(args, "listen", None) or "tcp/127.0.0.1:7447")
+        endpoint = sup.start_router(getattr(args, "listen", None)
+                                    or f"{fleet_scheme()}/127.0.0.1:7447")
         if store:
             pgfleet.start_workers(sup, args.shards, store, getattr(args, "tile_servers", 1))
         for i in range(0 if store else args.shards):

@@ -2,7 +2,8 @@
 
 Reads the drive log, segments each frame (ground-truth segmenter for simulated logs, or the ONNX
 model), lifts the labels to the ground (IPM), fetches the tiles around the car from their owner
-shards over Zenoh, runs the Localizer, publishes roadmap/pose/<vehicle>, and writes
+shards over Zenoh, runs the Localizer, publishes roadmap/pose/<vehicle> (holding the liveliness
+token roadmap/alive/localizer/<vehicle> meanwhile), and writes
 OUT/trajectory.tum, OUT/diagnostics.jsonl, OUT/localization.json and OUT/config.toml."""
 
 import json
@@ -35,8 +36,12 @@ def main(args, cfg) -> int:
     out = Path(args.out or Path(args.log) / "localize")
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.toml").write_text(to_toml(cfg))
-    with open_session(cfg.bus) as session:
-        report = localize_log(log, cfg, session, vehicle, out)
+    with open_session(cfg.bus, "localizer") as session:
+        token = session.liveliness().declare_token(keys.alive("localizer", vehicle))
+        try:
+            report = localize_log(log, cfg, session, vehicle, out)
+        finally:
+            token.undeclare()
     logger.info("%s: %s", vehicle, summary_line(report))
     return 0
 
@@ -106,6 +111,7 @@ def localize_log(log: DriveLog, cfg, session, vehicle: str, out: Path) -> dict:
         tiles_fetched=client.fetched,
         tile_bytes=client.bytes,
         tile_updates=client.updates,
+        tiles_rejected=client.rejected,
         per_frame_ms=_percentiles(timings),
     )
     (out / "localization.json").write_text(json.dumps(report, indent=1))

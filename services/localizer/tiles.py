@@ -3,7 +3,9 @@ the Tile messages ("contour/2", legacy "contour/1", or "raw/1"), and the Zenoh c
 and follows them.
 
 `tiles_needed` and `decode_tile_message` are pure; `TileClient` is the thin transport adapter and
-takes an open session (from common.bus.open_session)."""
+takes an open session (from common.bus.open_session). A tile that fails to decode, or that names
+another tile than the key it came on, is rejected (counted, logged) and the last good version
+stays in the cache: hostile or corrupt input never replaces the map."""
 
 import logging
 import math
@@ -65,7 +67,7 @@ class TileClient:
         self.params = "?codec=raw" if codec_name == "raw" else ""
         self.timeout_s, self.retry_missing_s = timeout_s, retry_missing_s
         self._missing: dict[TileId, float] = {}
-        self.fetched = self.missing = self.updates = 0
+        self.fetched = self.missing = self.updates = self.rejected = 0
         self.bytes = 0
         self.decode_ms: list[float] = []
         self._sub = (
@@ -98,7 +100,11 @@ class TileClient:
             if reply.ok is None:
                 logger.warning("tile %s: error reply %r", tile, reply.err.payload.to_bytes()[:200])
                 continue
-            self._store(reply.ok.payload.to_bytes())
+            try:
+                self._store(reply.ok.payload.to_bytes(), tile)
+            except CodecError as exc:
+                self._reject(tile, exc)
+                continue
             self.fetched += 1
             return True
         self._missing[tile] = time.monotonic()
@@ -121,14 +127,18 @@ class TileClient:
                 if self.params:  # raw map wanted: the update is contour coded, fetch raw instead
                     applied += self.fetch(tile)
                 else:
-                    applied += self._store(sample.payload.to_bytes())
+                    applied += self._store(sample.payload.to_bytes(), tile)
             except CodecError as exc:
-                logger.warning("tile update %s ignored: %s", tile, exc)
+                self._reject(tile, exc)
         self.updates += applied
         return applied
 
-    def _store(self, payload: bytes) -> bool:
+    def _store(self, payload: bytes, tile: TileId) -> bool:
+        """Decode a Tile that came on `tile`'s key and cache it if newer; CodecError (cache
+        untouched) when it does not decode or names another tile."""
         msg = codec.decode(payload, expect=Tile)
+        if tuple(msg.tile) != tuple(tile):
+            raise CodecError(f"a Tile for {tuple(msg.tile)} on the key of tile {tuple(tile)}")
         old = self.cache.version(msg.tile)
         if old is not None and msg.version <= old:
             return False
@@ -138,6 +148,12 @@ class TileClient:
         self.bytes += len(msg.data)
         self.cache.put(msg.tile, msg.version, labels)
         return True
+
+    def _reject(self, tile: TileId, exc: CodecError) -> None:
+        self.rejected += 1
+        kept = self.cache.version(tile)
+        logger.warning("tile %s rejected (%s); %s", tile, exc,
+                       f"keeping version {kept}" if kept is not None else "none cached")
 
     def close(self) -> None:
         if self._sub is not None:

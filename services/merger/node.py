@@ -1,6 +1,9 @@
 """`roadmap merger --shard I --shards N [--store PATH]`: one tile merger shard on Zenoh.
 
-Ingest (`roadmap/ingest/s<I>`, complete): a bounded queue (merger.ingest_queue; full, it holds
+Ingest (`roadmap/ingest/s<I>`, complete): admitted on the RX thread before anything is
+decoded (services/merger/throttle.py: an oversized payload is answered with an error ack at
+once; a client over its rate gets its `throttled` ack merger.throttle_delay_s later, so a sender
+that ignores the backoff still waits), then a bounded queue (merger.ingest_queue; full, it holds
 the RX thread back: backpressure) drained by the main loop, which wakes as a query arrives and
 takes the queries waiting together (up to merger.ingest_group), stores their new patches in one
 transaction (group commit: one fsync), applies them and then replies each its IngestAck; a
@@ -12,6 +15,7 @@ quiet for `merger.debounce_s` (at the latest `merger.debounce_max_s` after a cha
 batches keep coming) and published on `roadmap/tile-update/<tx>/<ty>`. Liveliness token
 `roadmap/alive/merger/s<I>` once recovery is done. Runs until SIGTERM/SIGINT."""
 
+import collections
 import logging
 import queue
 import threading
@@ -25,10 +29,11 @@ from common.config import MergerConfig, RoadmapConfig
 from common.contours import CODEC
 from common.errors import CodecError, ConfigError
 from common.grid import owner_of_tile
-from common.messages import ACCEPTED, IngestAck, Tile
+from common.messages import ACCEPTED, THROTTLED, IngestAck, Stats, Tile
 from services.merger.durable import DurableShard
 from services.merger.shard import MergerShard, TileCodecCache
 from services.merger.store import ShardStore
+from services.merger.throttle import IngestGuard, NoThrottle, get_ingest_guard
 
 logger = logging.getLogger(__name__)
 
@@ -63,8 +68,15 @@ class MergerNode:
                  debounce_s: float = MergerConfig.debounce_s,
                  debounce_max_s: float = MergerConfig.debounce_max_s,
                  ingest_queue: int = MergerConfig.ingest_queue,
-                 ingest_group: int = MergerConfig.ingest_group):
+                 ingest_group: int = MergerConfig.ingest_group,
+                 guard: IngestGuard | None = None,
+                 throttle_delay_s: float = MergerConfig.throttle_delay_s):
         self.session = session
+        self.guard = guard or IngestGuard(max_bytes=codec.MAX_MESSAGE_BYTES, throttle=NoThrottle())
+        self._guard_lock = threading.Lock()
+        self.throttle_delay_s = throttle_delay_s
+        self.held_max = max(1, int(ingest_queue))  # throttled queries held back, at most
+        self._held: collections.deque = collections.deque()  # (release time, query, reply)
         self.durable = durable
         self.shard = shard
         self.debounce_s = debounce_s
@@ -77,7 +89,7 @@ class MergerNode:
         self.ingest_queue: queue.Queue = queue.Queue(maxsize=max(1, int(ingest_queue)))
         self.tile_queryables = {}
         self.ingest = session.declare_queryable(
-            keys.ingest(shard), Callback(self.ingest_queue.put, indirect=False), complete=True)
+            keys.ingest(shard), Callback(self._admit, indirect=False), complete=True)
         self.stats_q = session.declare_queryable(keys.stats("merger", f"s{shard}"),
                                                  self._enqueue_callback(), complete=True)
         for tile in durable.tiles():
@@ -95,6 +107,31 @@ class MergerNode:
             self.tile_queryables[tile] = self.session.declare_queryable(
                 keys.tile(*tile), self._enqueue_callback(), complete=True)
 
+    def _admit(self, query) -> None:
+        """RX thread: answer an oversized query at once and hold a throttled one's answer for
+        throttle_delay_s (neither is decoded nor queued); queue the others for the main loop."""
+        size = sum(len(z) for z in (query.payload, query.attachment) if z is not None)
+        client = _client_id(query) if size <= self.guard.max_bytes else ""
+        with self._guard_lock:
+            refusal = self.guard.refusal(client, size, time.monotonic())
+        if refusal is None:
+            self.ingest_queue.put(query)
+            return
+        reply = codec.encode(IngestAck(error=refusal))
+        if (refusal.startswith(THROTTLED) and self.throttle_delay_s > 0
+                and len(self._held) < self.held_max):
+            self._held.append((time.monotonic() + self.throttle_delay_s, query, reply))
+            return
+        with query:
+            query.reply(query.key_expr, reply)
+
+    def _release_held(self, now_s: float) -> None:
+        """Answer the held throttled queries that are due (all of them at `now_s` = inf)."""
+        while self._held and self._held[0][0] <= now_s:
+            _, query, reply = self._held.popleft()
+            with query:
+                query.reply(query.key_expr, reply)
+
     # -- main loop: ingest + debounced flush ---------------------------------------------------
 
     def run(self, stop: threading.Event) -> None:
@@ -106,7 +143,9 @@ class MergerNode:
                 group = self._waiting_ingest(IDLE_WAIT_S)
                 if group:
                     self._handle_ingest(group)
+                self._release_held(time.monotonic())
         finally:
+            self._release_held(float("inf"))
             self._stop.set()
             self.flushing.join(timeout=30.0)
             self.serving.join(timeout=2.0)
@@ -204,7 +243,7 @@ class MergerNode:
     def _serve(self, query) -> None:
         key = str(query.key_expr)
         if key == keys.stats("merger", f"s{self.shard}"):
-            query.reply(key, codec.encode(self.durable.stats()))  # stats flush first
+            query.reply(key, codec.encode(self._stats()))  # stats flush first
             self._publish_changed()  # so every tile the stats list answers its queries now
             return
         tile = keys.parse_tile(key)
@@ -215,6 +254,21 @@ class MergerNode:
             query.reply_del(key)
         elif since is None or msg.version > since:
             query.reply(key, codec.encode(msg))
+
+    def _stats(self) -> Stats:
+        stats = self.durable.stats()
+        with self._guard_lock:
+            counters = {**stats.counters, **self.guard.counters}
+        return Stats(role=stats.role, ident=stats.ident, counters=counters)
+
+
+def _client_id(query) -> str:
+    """The sender's vehicle id (the query's attachment, as the vehicle's uploader sets it), ""
+    when there is none. Self-declared: deploy/README.md says what that does and does not stop."""
+    attachment = query.attachment
+    if attachment is None:
+        return ""
+    return attachment.to_bytes()[:codec.MAX_ID_CHARS].decode("utf-8", "replace")
 
 
 def _tile_selector(parameters) -> tuple[int | None, str]:
@@ -237,12 +291,14 @@ def main(args, cfg: RoadmapConfig) -> int:
     store_path = args.store or f"merger-s{args.shard}.sqlite"
     durable = get_durable_shard(args.shard, args.shards, store_path, cfg)
     try:
-        with open_session(cfg.bus) as session:
+        with open_session(cfg.bus, "merger") as session:
             node = MergerNode(session, durable, shard=args.shard,
                               debounce_s=cfg.merger.debounce_s,
                               debounce_max_s=cfg.merger.debounce_max_s,
                               ingest_queue=cfg.merger.ingest_queue,
-                              ingest_group=cfg.merger.ingest_group)
+                              ingest_group=cfg.merger.ingest_group,
+                              guard=get_ingest_guard(cfg.merger),
+                              throttle_delay_s=cfg.merger.throttle_delay_s)
             logger.info("merger s%d/%d serving", args.shard, args.shards)
             node.run(stop)
     finally:

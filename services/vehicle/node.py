@@ -2,7 +2,9 @@
 
 Thin shell around VehicleMapper: replays the log's streams in time order, times every stage,
 writes sealed patches to the on-disk outbox, and an uploader thread sends them to
-`roadmap/ingest/s<owner>` (waiting while the owner shard is not alive) until every patch is acked.
+`roadmap/ingest/s<owner>` (waiting while the owner shard is not alive) until every patch is acked;
+a batch the shard refused as `throttled` is retried after a backoff. Holds the liveliness token
+`roadmap/alive/vehicle/<id>` while it runs.
 Writes STATE/summary.json, STATE/local_map.npz and STATE/config.toml."""
 
 import json
@@ -20,7 +22,7 @@ from common.bus import SampleKind, open_session, stop_event
 from common.config import RoadmapConfig, to_toml
 from common.drivelog import DriveLog
 from common.grid import owner_of_tile, region_of_tile
-from common.messages import GridPatch, IngestAck, IngestBatch
+from common.messages import THROTTLED, GridPatch, IngestAck, IngestBatch
 from common.segmentation import segmenter_for
 from services.vehicle.estimator import PoseEstimator, dead_reckon
 from services.vehicle.mapper import VehicleMapper
@@ -123,9 +125,12 @@ def map_log(
 class Uploader(threading.Thread):
     """Sends outbox patches to their owner shards until acked; waits while a shard is not alive."""
 
-    def __init__(self, session, outbox: Outbox, cfg: RoadmapConfig, stop: threading.Event):
+    def __init__(self, session, outbox: Outbox, cfg: RoadmapConfig, stop: threading.Event,
+                 vehicle: str = ""):
         super().__init__(name="uploader", daemon=True)
         self.session, self.outbox, self.cfg, self.stop = session, outbox, cfg, stop
+        self.vehicle = vehicle  # sent as each query's attachment: the shard's throttle key
+        self.throttled = 0  # batches a shard refused for this vehicle's rate (then retried)
         self.mapping_done = threading.Event()
         self.wake = threading.Event()
         self.alive: set[str] = set()
@@ -191,7 +196,8 @@ class Uploader(threading.Thread):
         self.sent += len(patches)
         self.bytes_sent += len(payload)
         self.sent_ids.update(p.patch_id for p in patches)
-        replies = self.session.get(key, payload=payload, timeout=self.cfg.vehicle.upload_timeout_s)
+        replies = self.session.get(key, payload=payload, attachment=self.vehicle.encode(),
+                                   timeout=self.cfg.vehicle.upload_timeout_s)
         for reply in replies:
             if reply.ok is None:
                 continue
@@ -200,6 +206,10 @@ class Uploader(threading.Thread):
             except Exception as exc:  # noqa: BLE001 - a bad ack is retried like no ack
                 logger.warning("%s: undecodable ack: %s", key, exc)
                 continue
+            if ack.error and ack.error.startswith(THROTTLED):
+                self.throttled += 1  # not an error: retried after the backoff
+                logger.debug("shard s%d: %s", shard, ack.error)
+                return False
             if ack.error:
                 logger.warning("%s rejected a batch: %s", key, ack.error)
                 break
@@ -304,8 +314,9 @@ def main(args, cfg: RoadmapConfig) -> int:
         uploader.wake.set()
 
     t0 = time.perf_counter()
-    with open_session(cfg.bus) as session:
-        uploader = Uploader(session, outbox, cfg, stop)
+    with open_session(cfg.bus, "vehicle") as session:
+        token = session.liveliness().declare_token(keys.alive("vehicle", vehicle))
+        uploader = Uploader(session, outbox, cfg, stop, vehicle=vehicle)
         uploader.start()
         try:
             finished = map_log(log, mapper, on_patches, stop, timer)
@@ -319,6 +330,7 @@ def main(args, cfg: RoadmapConfig) -> int:
             stop.set()
             uploader.join(10.0)
             uploader.close()
+            token.undeclare()
     counts = outbox.counts()
     pending = len(outbox.pending())
     summary = {
@@ -334,6 +346,7 @@ def main(args, cfg: RoadmapConfig) -> int:
         "duplicates": counts["duplicates"],
         "patches_pending": pending,
         "errors": uploader.errors,
+        "throttled": uploader.throttled,
         "resumed_from_seq": sealed,
         **pose_errors(mapper, log.streams["frame_pose_true"]),
         "calibration": {
