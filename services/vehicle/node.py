@@ -208,7 +208,7 @@ class Uploader(threading.Thread):
                 continue
             if ack.error and ack.error.startswith(THROTTLED):
                 self.throttled += 1  # not an error: retried after the backoff
-                logger.debug("shard s%d: %s", shard, ack.error)
+                logger.debug("%s: %s", key, ack.error)
                 return False
             if ack.error:
                 logger.warning("%s rejected a batch: %s", key, ack.error)
