@@ -237,6 +237,16 @@ class MergerConfig:
 
 
 @dataclass(frozen=True)
+class WorldConfig:
+    """Where the world's local ENU frame lies on the globe (DESIGN.md: Frames): the geodetic
+    origin that map exports (GeoJSON, Lanelet2 OSM) and the viewer convert metres about. Empty:
+    taken from the drive logs of a demo's output folder (their world's origin)."""
+
+    origin_lat_deg: float | None = None  # WGS84 latitude of x = y = 0
+    origin_lon_deg: float | None = None  # WGS84 longitude of x = y = 0
+
+
+@dataclass(frozen=True)
 class RoadmapConfig:
     bus: BusConfig = field(default_factory=BusConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
@@ -247,6 +257,7 @@ class RoadmapConfig:
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
     merger: MergerConfig = field(default_factory=MergerConfig)
+    world: WorldConfig = field(default_factory=WorldConfig)
 
 
 # -- loading -----------------------------------------------------------------------------------
@@ -371,6 +382,8 @@ def _validate(cfg: RoadmapConfig) -> None:
     if cfg.segmentation.flip not in ("", *FLIP_MODES):
         raise ConfigError(f"segmentation.flip must be empty (the model's own) or one of "
                           f"{', '.join(FLIP_MODES)}, got {cfg.segmentation.flip!r}")
+    if (cfg.world.origin_lat_deg is None) != (cfg.world.origin_lon_deg is None):
+        raise ConfigError("world.origin_lat_deg and world.origin_lon_deg go together: set both")
     bad = [v for v in cfg.grid.shard_map.values() if not 0 <= v < cfg.grid.shards]
     if bad:
         raise ConfigError(f"grid.shard_map names shards outside [0, {cfg.grid.shards}): {bad}")

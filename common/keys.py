@@ -27,20 +27,35 @@ def tile_update(tx: int, ty: int) -> str:
 TILE_UPDATE_ALL = f"{PREFIX}/tile-update/*/*"
 
 
+def tile_selector(tx: int, ty: int, since: int | None = None) -> str:
+    """A tile query's selector: `roadmap/tile/<tx>/<ty>`, with `?since=<v>` (no sample when
+    the tile is not newer than v)."""
+    return tile(tx, ty) + ("" if since is None else f"?since={int(since)}")
+
+
 def pose(vehicle: str) -> str:
     return f"{PREFIX}/pose/{vehicle}"
+
+
+POSE_ALL = f"{PREFIX}/pose/*"
 
 
 def stats(role: str, ident: str) -> str:
     return f"{PREFIX}/stats/{role}/{ident}"
 
 
+def stats_all(role: str | None = None) -> str:
+    """Every stats queryable of a role (`roadmap/stats/<role>/*`), or of every role."""
+    return f"{PREFIX}/stats/{role}/*" if role else f"{PREFIX}/stats/*/*"
+
+
 def alive(role: str, ident: str) -> str:
     return f"{PREFIX}/alive/{role}/{ident}"
 
 
-def alive_all(role: str) -> str:
-    return f"{PREFIX}/alive/{role}/*"
+def alive_all(role: str | None = None) -> str:
+    """Every liveliness token of a role (`roadmap/alive/<role>/*`), or of every role."""
+    return f"{PREFIX}/alive/{role}/*" if role else f"{PREFIX}/alive/*/*"
 
 
 def _chunks(key: str, head: str, n: int) -> list[str]:
@@ -69,6 +84,11 @@ def parse_ingest(key: str) -> int:
 
 def parse_alive(key: str) -> tuple[str, str]:
     role, ident = _chunks(key, "alive", 2)
+    return role, ident
+
+
+def parse_stats(key: str) -> tuple[str, str]:
+    role, ident = _chunks(key, "stats", 2)
     return role, ident
 
 
