@@ -36,7 +36,8 @@ def main(args, cfg) -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.toml").write_text(to_toml(cfg))
     with open_session(cfg.bus) as session:
-        report = localize_log(log, cfg, session, vehicle, out)
+        with session.liveliness().declare_token(keys.alive("localizer", vehicle)):
+            report = localize_log(log, cfg, session, vehicle, out)
     logger.info("%s: %s", vehicle, summary_line(report))
     return 0
 

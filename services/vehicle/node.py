@@ -308,6 +308,7 @@ def main(args, cfg: RoadmapConfig) -> int:
 
     t0 = time.perf_counter()
     with open_session(cfg.bus) as session:
+        alive = session.liveliness().declare_token(keys.alive("vehicle", vehicle))
         uploader = Uploader(session, outbox, cfg, stop)
         uploader.start()
         try:
@@ -322,6 +323,7 @@ def main(args, cfg: RoadmapConfig) -> int:
             stop.set()
             uploader.join(10.0)
             uploader.close()
+            alive.undeclare()
     counts = outbox.counts()
     pending = len(outbox.pending())
     summary = {
