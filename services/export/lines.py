@@ -13,7 +13,8 @@ JOIN_TURN_DEG = 35.0  # ... when the line turns no more than this there
 DASH_MAX_M = 4.5  # a piece shorter than this is a dash candidate (dashes: 3 m, 6 m gaps)
 DASH_GAP_M = (0.8, 12.0)  # gaps between neighbouring dashes of one line
 DASH_TURN_DEG = 20.0  # dashes of one line point the same way, to this
-DASH_OFFSET_M = 0.5  # ... and lie on one line, to this sideways
+DASH_CHORD_DEG = 15.0  # ... the gap between them runs their way, to this (a bend allows some)
+DASH_OFFSET_M = 1.0  # ... and lies at most this far sideways (neighbour lines: 2.5 m and more)
 SIMPLIFY_M = 0.04  # centre lines of strips are simplified to this
 
 
@@ -138,7 +139,8 @@ def _near_pairs(points: np.ndarray, radius: float):
 
 def chain_dashes(pieces: list[Piece]) -> list[Piece]:
     """Pieces shorter than DASH_MAX_M that follow each other along one line (gap within
-    DASH_GAP_M, same direction and line to DASH_TURN_DEG / DASH_OFFSET_M) -> one line through
+    DASH_GAP_M, same direction and line to DASH_TURN_DEG, DASH_CHORD_DEG and DASH_OFFSET_M) ->
+    one line through
     them, dashes = their number; longer pieces and lone short ones pass unchanged (a lone
     piece DASH_MAX_M or shorter keeps dashes = 1)."""
     short = [p for p in pieces if p.length_m < DASH_MAX_M]
@@ -191,8 +193,11 @@ def _dash_gap(a: Piece, ea: int, b: Piece, eb: int) -> float | None:
         return None
     if _angle_deg(out_a, into_b) > DASH_TURN_DEG:
         return None
+    chord = gap_v / max(gap, 1e-9)
+    if max(_angle_deg(out_a, chord), _angle_deg(into_b, chord)) > DASH_CHORD_DEG:
+        return None
     sideways = abs(float(out_a[0] * gap_v[1] - out_a[1] * gap_v[0]))
-    return gap if sideways <= DASH_OFFSET_M and float(np.dot(out_a, gap_v)) > 0 else None
+    return gap if sideways <= DASH_OFFSET_M else None
 
 
 def _walk_chain(short: list[Piece], links: list[list[int]], start: int, seen: set) -> Piece:
