@@ -65,12 +65,17 @@ class LiveFeed:
                 logger.warning("refresh: %s", exc)
             self._stop.wait(self.stats_every_s)
 
-    def refresh(self) -> None:
-        """Shards' counters and tile lists, liveliness, and every listed tile the state lacks
-        or holds an older version of (a publication missed, or sent before the viewer)."""
+    def refresh_stats(self) -> dict:
+        """The shards' counters and tile lists now (also for a clicked tile's panel)."""
         stats = fleet.shard_stats(self.session, self.timeout_s)
         owners = fleet.tile_owners(stats)
         self.state.put_stats(stats, owners)
+        return owners
+
+    def refresh(self) -> None:
+        """Shards' counters and tile lists, liveliness, and every listed tile the state lacks
+        or holds an older version of (a publication missed, or sent before the viewer)."""
+        owners = self.refresh_stats()
         self.state.put_alive(fleet.alive(self.session, self.timeout_s))
         held = self.state.versions()
         for tile, shard in sorted(owners.items()):

@@ -36,6 +36,7 @@ def static_file(name: str) -> bytes:
 class _Handler(BaseHTTPRequestHandler):
     server_version = "roadmap-viewer"
     state: ViewerState  # set on the subclass made per server
+    refresh_stats = None  # a live feed's: fresh shard stats for a clicked tile
 
     def do_GET(self) -> None:  # noqa: N802 (http.server's name)
         path = self.path.split("?", 1)[0]
@@ -57,6 +58,11 @@ class _Handler(BaseHTTPRequestHandler):
             self._send(HTTPStatus.INTERNAL_SERVER_ERROR, "text/plain", f"{exc}\n".encode())
 
     def _tile(self, tile, png: bool) -> None:
+        if not png and self.refresh_stats is not None:
+            try:
+                self.refresh_stats()
+            except Exception as exc:  # the panel shows the last stats instead
+                logger.warning("stats for tile %s: %s", tile, exc)
         body = self.state.png(tile) if png else self.state.tile_info(tile)
         if body is None:
             self._send(HTTPStatus.NOT_FOUND, "text/plain", f"no tile {tile}\n".encode())
@@ -81,9 +87,12 @@ class _Handler(BaseHTTPRequestHandler):
         logger.debug("%s %s", self.address_string(), fmt % args)
 
 
-def serve(state: ViewerState, host: str, port: int) -> ThreadingHTTPServer:
-    """An HTTP server for `state`, serving from a daemon thread; call shutdown() to stop."""
-    handler = type("Handler", (_Handler,), {"state": state})
+def serve(state: ViewerState, host: str, port: int, refresh_stats=None) -> ThreadingHTTPServer:
+    """An HTTP server for `state`, serving from a daemon thread; call shutdown() to stop.
+    `refresh_stats()`, when given, is called before a tile's panel is answered."""
+    handler = type("Handler", (_Handler,), {"state": state,
+                                            "refresh_stats": staticmethod(refresh_stats)
+                                            if refresh_stats else None})
     try:
         httpd = ThreadingHTTPServer((host, port), handler)
     except OSError as exc:
@@ -111,13 +120,13 @@ def viewer_command(args, cfg) -> int:
                         stats_every_s=args.stats_every,
                         timeout_s=min(cfg.bus.query_timeout_s, 2.0)).start()
         try:
-            return _serve_until(stop, state, args)
+            return _serve_until(stop, state, args, refresh_stats=feed.refresh_stats)
         finally:
             feed.close()
 
 
-def _serve_until(stop: threading.Event, state: ViewerState, args) -> int:
-    httpd = serve(state, args.host, args.port)
+def _serve_until(stop: threading.Event, state: ViewerState, args, refresh_stats=None) -> int:
+    httpd = serve(state, args.host, args.port, refresh_stats)
     url = f"http://{args.host}:{httpd.server_address[1]}/"
     sys.stderr.write(f"roadmap viewer: {url} ({state.source}); Ctrl-C stops\n")
     try:

@@ -59,10 +59,11 @@ def _chrome():
 
 @pytest.fixture
 def live_viewer(router, tmp_path):
-    """Router + shard s0 + viewer (1 s stats refresh); yields (page URL, test session)."""
+    """Router + shard s0 + viewer; yields (page URL, test session). The viewer lists the
+    shards' tiles once a minute only: what the page shows after that came by tile-update."""
     port = free_tcp_port()
     shard = fleet.start_merger(router, tmp_path / "s0.sqlite", tmp_path / "merger.log")
-    viewer = fleet.start("viewer", "--port", port, "--connect", router, "--stats-every", "1",
+    viewer = fleet.start("viewer", "--port", port, "--connect", router, "--stats-every", "60",
                          log=tmp_path / "viewer.log")
     url = f"http://127.0.0.1:{port}/"
     try:
