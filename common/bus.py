@@ -14,6 +14,7 @@ import threading
 import zenoh
 
 from common.config import BusConfig
+from common.errors import TransportError
 
 logger = logging.getLogger(__name__)
 
@@ -37,9 +38,20 @@ def make_zenoh_config(bus: BusConfig) -> zenoh.Config:
 
 
 @contextlib.contextmanager
-def open_session(bus: BusConfig):
-    """`with open_session(cfg.bus) as session:` -- always closed, even on exceptions."""
-    session = zenoh.open(make_zenoh_config(bus))
+def open_session(bus: BusConfig, connect_timeout_s: float | None = None):
+    """`with open_session(cfg.bus) as session:` -- always closed, even on exceptions.
+
+    Nodes wait for their router however long it takes; a one-shot tool (status, export) gives
+    connect_timeout_s and gets a TransportError when no router answers within it."""
+    conf = make_zenoh_config(bus)
+    if connect_timeout_s is not None and bus.mode == "client":
+        conf.insert_json5("connect/timeout_ms", str(int(connect_timeout_s * 1000)))
+        conf.insert_json5("connect/exit_on_failure", "true")
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as exc:
+        raise TransportError(f"no Zenoh router answers at {', '.join(bus.connect)} "
+                             f"({exc})") from exc
     try:
         yield session
     finally:

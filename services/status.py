@@ -15,6 +15,8 @@ from services import fleet
 
 logger = logging.getLogger(__name__)
 
+CONNECT_TIMEOUT_S = 5.0  # no router within this: a one-line error, not a wait
+
 ROLES = ("merger", "vehicle", "localizer", "viewer")
 
 
@@ -127,7 +129,7 @@ def status_command(args, cfg) -> int:
     else:
         from common.bus import open_session
 
-        with open_session(cfg.bus) as session:
+        with open_session(cfg.bus, connect_timeout_s=CONNECT_TIMEOUT_S) as session:
             time.sleep(0.2)  # let the router's routing table reach this new session
             status = fleet_status(session, interval_s=args.interval,
                                   timeout_s=min(cfg.bus.query_timeout_s, 2.0))

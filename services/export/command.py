@@ -17,6 +17,8 @@ from services.export.sources import origin_latlon, read_folder
 
 logger = logging.getLogger(__name__)
 
+CONNECT_TIMEOUT_S = 5.0  # no router within this: a one-line error, not a wait
+
 FORMATS = ("geojson", "lanelet2")
 
 
@@ -42,7 +44,7 @@ def load_tiles(args, cfg) -> tuple[list[Tile], str]:
     from common.bus import open_session
     from services.fleet import fleet_tiles
 
-    with open_session(cfg.bus) as session:
+    with open_session(cfg.bus, connect_timeout_s=CONNECT_TIMEOUT_S) as session:
         tiles, _ = fleet_tiles(session, cfg.bus.query_timeout_s)
     return tiles, ",".join(cfg.bus.connect)
 

@@ -147,3 +147,14 @@ def test_export_without_an_origin_says_how_to_give_one(tmp_path):
                   "--out", tmp_path / "x.osm")
     assert res.returncode == 0, res.stderr
     assert ET.parse(tmp_path / "x.osm").getroot().tag == "osm"
+
+
+def test_status_and_export_say_when_no_router_answers(tmp_path):
+    from common.bus import free_tcp_port
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"  # nobody listens here
+    for args in (("status", "--connect", endpoint),
+                 ("export", "--format", "geojson", "--connect", endpoint, "--out",
+                  tmp_path / "x.geojson")):
+        res = roadmap(*args, timeout=30)
+        assert res.returncode == 1 and "no Zenoh router answers" in res.stderr, res.stderr
