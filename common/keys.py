@@ -5,7 +5,11 @@ Tile routing: a merger shard declares one queryable with complete=True on
 patch, and on start-up for every stored tile). A tile query therefore reaches only its owner,
 never every shard, and a `get` on a tile nobody holds answers with no reply at once. The routing
 state grows with the tiles a shard holds, not with the number of shards. Ingest goes to the shard
-by name (`roadmap/ingest/s<k>`): the vehicle computes the owner with common.grid.owner_of_tile."""
+by name (`roadmap/ingest/s<k>`): the vehicle computes the owner with common.grid.owner_of_tile.
+
+Liveliness tokens `roadmap/alive/<role>/<id>`: merger (s<k>), vehicle and localizer (their
+vehicle id) and viewer; `roadmap status` reads them all with `alive_all()` and every stats
+queryable with `stats_all()`, no shard count needed."""
 
 from common.errors import CodecError
 

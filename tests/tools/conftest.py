@@ -14,7 +14,7 @@ import pytest
 from common.bus import free_tcp_port
 from tests.conftest import spawn
 
-DEMO_TIMEOUT_S = 300.0
+DEMO_TIMEOUT_S = 480.0  # ~30 s on 2 idle cores; a busy machine takes several times that
 
 
 def karlsruhe_osm(shared_data: Path) -> Path:

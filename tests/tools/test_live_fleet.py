@@ -12,7 +12,7 @@ import urllib.request
 
 import pytest
 
-from common.bus import open_session
+from common.bus import free_tcp_port, open_session
 from common.config import BusConfig
 from services.status import fleet_status
 from tests import fleet
@@ -110,3 +110,29 @@ def test_demo_kept_the_viewer_up_during_the_run(karlsruhe_demo):
     with pytest.raises(OSError):
         urllib.request.urlopen(f"http://127.0.0.1:{karlsruhe_demo.viewer_port}/api/state",
                                timeout=1.0)
+
+
+def test_status_and_viewer_of_a_demo_folder(karlsruhe_demo, tmp_path):
+    """Against a demo's output instead of a live fleet: what its shard store holds."""
+    report = karlsruhe_demo.report
+    status = json.loads(roadmap_ok("status", "--json", "--from", karlsruhe_demo.out).stdout)
+    (row,) = status["shards"]
+    assert row["id"] == "s0" and row["alive"] is None and row["patches_per_s"] is None
+    assert row["patches_applied"] == report["pipeline"]["patches_applied"]
+    assert row["tiles"] == report["map"]["tiles"] and row["regions"] >= 1
+    port = free_tcp_port()
+    viewer = fleet.start("viewer", "--from", karlsruhe_demo.out, "--port", port,
+                         log=tmp_path / "viewer.log")
+    try:
+        url = f"http://127.0.0.1:{port}/api/state"
+        fleet.wait_http(url, viewer, tmp_path / "viewer.log")
+        state = fleet.http_json(url)
+        versions = sorted(t["version"] for t in state["tiles"])
+        assert versions == sorted(report["run"]["tile_versions"])
+        assert {t["shard"] for t in state["tiles"]} == {"s0"}
+        tile = state["tiles"][0]
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/tile/{tile['tx']}/"
+                                    f"{tile['ty']}.png") as r:
+            assert r.headers["Content-Type"] == "image/png" and len(r.read()) > 100
+    finally:
+        fleet.stop(viewer)
