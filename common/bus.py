@@ -15,7 +15,7 @@ import zenoh
 
 from common import security
 from common.config import BusConfig
-from common.errors import ConfigError
+from common.errors import ConfigError, TransportError
 
 logger = logging.getLogger(__name__)
 
@@ -64,10 +64,22 @@ def check_secure_endpoints(endpoints) -> None:
 
 
 @contextlib.contextmanager
-def open_session(bus: BusConfig, role: str | None = None):
+def open_session(bus: BusConfig, role: str | None = None,
+                 connect_timeout_s: float | None = None):
     """`with open_session(cfg.bus, "merger") as session:` -- always closed, even on exceptions.
-    `role` picks the certificate on a secure bus (bus.tls_dir; common.security.ROLES)."""
-    session = zenoh.open(make_zenoh_config(bus, role))
+    `role` picks the certificate on a secure bus (bus.tls_dir; common.security.ROLES).
+
+    Nodes wait for their router however long it takes; a one-shot tool (status, export) gives
+    connect_timeout_s and gets a TransportError when no router answers within it."""
+    conf = make_zenoh_config(bus, role)
+    if connect_timeout_s is not None and bus.mode == "client":
+        conf.insert_json5("connect/timeout_ms", str(int(connect_timeout_s * 1000)))
+        conf.insert_json5("connect/exit_on_failure", "true")
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as exc:
+        raise TransportError(f"no Zenoh router answers at {', '.join(bus.connect)} "
+                             f"({exc})") from exc
     try:
         yield session
     finally:

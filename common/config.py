@@ -238,6 +238,16 @@ class MergerConfig:
 
 
 @dataclass(frozen=True)
+class WorldConfig:
+    """Where the world's local ENU frame lies on the globe (DESIGN.md: Frames): the geodetic
+    origin that map exports (GeoJSON, Lanelet2 OSM) and the viewer convert metres about. Empty:
+    taken from the drive logs of a demo's output folder (their world's origin)."""
+
+    origin_lat_deg: float | None = None  # WGS84 latitude of x = y = 0
+    origin_lon_deg: float | None = None  # WGS84 longitude of x = y = 0
+
+
+@dataclass(frozen=True)
 class RoadmapConfig:
     bus: BusConfig = field(default_factory=BusConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
@@ -248,6 +258,7 @@ class RoadmapConfig:
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
     merger: MergerConfig = field(default_factory=MergerConfig)
+    world: WorldConfig = field(default_factory=WorldConfig)
 
 
 # -- loading -----------------------------------------------------------------------------------
@@ -382,6 +393,8 @@ def _validate(cfg: RoadmapConfig) -> None:
                           f"{cfg.merger.store!r}")
     if not 0 < cfg.merger.lease_renew_s < cfg.merger.lease_s:
         raise ConfigError("merger.lease_renew_s must be in (0, merger.lease_s)")
+    if (cfg.world.origin_lat_deg is None) != (cfg.world.origin_lon_deg is None):
+        raise ConfigError("world.origin_lat_deg and world.origin_lon_deg go together: set both")
     bad = [v for v in cfg.grid.shard_map.values() if not 0 <= v < cfg.grid.shards]
     if bad:
         raise ConfigError(f"grid.shard_map names shards outside [0, {cfg.grid.shards}): {bad}")

@@ -18,7 +18,11 @@ and the others drop the query. Tiles keep their plain key `roadmap/tile/<tx>/<ty
 is a pure function of it): the holder declares one complete queryable per tile it holds, and
 read-only tile servers (services/merger/tileserver.py) declare `roadmap/tile/*/*` complete and
 answer from the stored tiles; a get still reaches ONE queryable (the holder's exact key wins),
-never every worker, and the tiles stay readable while a region's writer is being replaced."""
+never every worker, and the tiles stay readable while a region's writer is being replaced.
+
+Liveliness tokens `roadmap/alive/<role>/<id>`: merger (s<k>), vehicle and localizer (their
+vehicle id) and viewer; `roadmap status` reads them all with `alive_all()` and every stats
+queryable with `stats_all()`, no shard count needed."""
 
 from common.errors import CodecError
 
@@ -60,20 +64,35 @@ def tile_update(tx: int, ty: int) -> str:
 TILE_UPDATE_ALL = f"{PREFIX}/tile-update/*/*"
 
 
+def tile_selector(tx: int, ty: int, since: int | None = None) -> str:
+    """A tile query's selector: `roadmap/tile/<tx>/<ty>`, with `?since=<v>` (no sample when
+    the tile is not newer than v)."""
+    return tile(tx, ty) + ("" if since is None else f"?since={int(since)}")
+
+
 def pose(vehicle: str) -> str:
     return f"{PREFIX}/pose/{vehicle}"
+
+
+POSE_ALL = f"{PREFIX}/pose/*"
 
 
 def stats(role: str, ident: str) -> str:
     return f"{PREFIX}/stats/{role}/{ident}"
 
 
+def stats_all(role: str | None = None) -> str:
+    """Every stats queryable of a role (`roadmap/stats/<role>/*`), or of every role."""
+    return f"{PREFIX}/stats/{role}/*" if role else f"{PREFIX}/stats/*/*"
+
+
 def alive(role: str, ident: str) -> str:
     return f"{PREFIX}/alive/{role}/{ident}"
 
 
-def alive_all(role: str) -> str:
-    return f"{PREFIX}/alive/{role}/*"
+def alive_all(role: str | None = None) -> str:
+    """Every liveliness token of a role (`roadmap/alive/<role>/*`), or of every role."""
+    return f"{PREFIX}/alive/{role}/*" if role else f"{PREFIX}/alive/*/*"
 
 
 def _chunks(key: str, head: str, n: int) -> list[str]:
@@ -102,6 +121,11 @@ def parse_ingest(key: str) -> int:
 
 def parse_alive(key: str) -> tuple[str, str]:
     role, ident = _chunks(key, "alive", 2)
+    return role, ident
+
+
+def parse_stats(key: str) -> tuple[str, str]:
+    role, ident = _chunks(key, "stats", 2)
     return role, ident
 
 

@@ -34,6 +34,10 @@ COMMANDS = {
     "eval": "services.eval.command:eval_command",
     "dump-config": "services.cli:dump_config",
     "certs": "services.certs:command",
+    "export": "services.export.command:export_command",
+    "viewer": "services.viewer.server:viewer_command",
+    "status": "services.status:status_command",
+    "trajectory": "services.demo.trajectories:trajectory_command",
 }
 
 
@@ -138,6 +142,8 @@ def _demo(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", choices=["default", "repaint"], default="default")
     p.add_argument("--chaos", action="store_true", help="kill and restart a shard and a vehicle")
     p.add_argument("--small", action="store_true", help="a short drive (for tests)")
+    p.add_argument("--viewer", type=int, default=None, metavar="PORT", nargs="?", const=8765,
+                   help="keep `roadmap viewer` up on PORT during the run")
     _common(p)
 
 
@@ -176,6 +182,48 @@ def _certs(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log-level", default="INFO")
 
 
+def _export(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--format", choices=["geojson", "lanelet2"], required=True)
+    p.add_argument("--out", required=True, help="file to write (.geojson / .osm)")
+    p.add_argument("--from", dest="from_dir", metavar="DIR", default=None,
+                   help="a demo's output folder, shard stores (*.sqlite) or a tiles.npz "
+                        "(default: the running fleet, --connect)")
+    p.add_argument("--classes", default=None, metavar="NAME,...",
+                   help="classes to export (default: the markings lane_line, stop_line, "
+                        "crosswalk, ground_sign)")
+    p.add_argument("--road", action="store_true", help="also the road surface (polygons)")
+    _common(p)
+
+
+def _viewer(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--port", type=int, default=8765)
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on")
+    p.add_argument("--from", dest="from_dir", metavar="DIR", default=None,
+                   help="show a demo's output folder or shard stores instead of a live fleet")
+    p.add_argument("--stats-every", type=float, default=3.0, metavar="S",
+                   help="seconds between queries of the shards' stats and tile lists")
+    _common(p)
+
+
+def _status(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--from", dest="from_dir", metavar="DIR", default=None,
+                   help="a demo's output folder or shard stores instead of a live fleet")
+    p.add_argument("--interval", type=float, default=1.0, metavar="S",
+                   help="seconds between the two stats samples patches/s is taken over")
+    _common(p)
+
+
+def _trajectory(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--from", dest="from_dir", metavar="DIR", required=True,
+                   help="a demo's output folder")
+    p.add_argument("--format", choices=["tum", "kitti"], default="tum")
+    p.add_argument("--out", required=True, help="folder for estimate.* and truth.*")
+    p.add_argument("--localizer", default="localizer",
+                   help="the localizer run's folder in DIR (default localizer)")
+    _common(p)
+
+
 # subcommand -> (help, its options)
 PARSERS = {
     "sim": ("simulate drives and write drive logs", _sim),
@@ -191,6 +239,11 @@ PARSERS = {
     "bench": ("benchmark every stage and write bench.json", _bench),
     "eval": ("run the evaluation suite and write eval.json", _eval),
     "certs": ("write a CA and a certificate + key per role", _certs),
+    "export": ("export the map as GeoJSON or Lanelet2 OSM (WGS84)", _export),
+    "viewer": ("a live web map of the fleet (local page, no internet)", _viewer),
+    "status": ("the fleet at a glance: shards, tiles, rates, who is alive", _status),
+    "trajectory": ("a demo's localizer trajectory and its ground truth as TUM or KITTI files "
+                   "(for evo)", _trajectory),
     "dump-config": ("print the effective configuration as TOML", _common),
 }
 

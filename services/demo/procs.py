@@ -225,5 +225,10 @@ class Supervisor:
         return self.start(name, cli_argv(
             "localize", "--log", str(log), "--out", str(out), *self._client_args(), *extra))
 
+    def start_viewer(self, port: int, extra: list[str] = ()) -> Proc:
+        """`roadmap viewer` on 127.0.0.1:port, a client of the fleet's router."""
+        return self.start("viewer", cli_argv("viewer", "--port", str(port),
+                                             *self._client_args(), *extra))
+
     def history(self) -> dict[str, list[dict]]:
         return {n: p.history for n, p in self.procs.items()}

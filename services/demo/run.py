@@ -25,6 +25,7 @@ from services.demo import figures, pgfleet
 from services.demo.fetch import load_tiles, run_fetch
 from services.demo.procs import ProcessError, Supervisor
 from services.demo.secure import fleet_scheme, secure_fleet
+from services.viewer.demo import start_viewer
 
 logger = logging.getLogger("roadmap.demo")
 
@@ -90,6 +91,7 @@ class DemoRun:
         logs = self.step("simulate drives", self._simulate)
         with Supervisor(self.out / "logs", config=self.out / "config.toml") as sup:
             self.step("start router and shards", self._start_cloud, sup)
+            start_viewer(sup, getattr(self.args, "viewer", None))  # roadmap demo --viewer [PORT]
             if self.args.scenario == "repaint":
                 update = self.step("map, repaint, map again", self._map_repaint, sup, logs)
             else:

@@ -91,7 +91,7 @@ class MergerNode:
         self.ingest = session.declare_queryable(
             keys.ingest(shard), Callback(self._admit, indirect=False), complete=True)
         self.stats_q = session.declare_queryable(keys.stats("merger", f"s{shard}"),
-                                                 self._enqueue_callback(), complete=True)
+                                                 self._enqueue_callback(stats=True), complete=True)
         for tile in durable.tiles():
             self._declare_tile(tile)
         self.token = session.liveliness().declare_token(keys.alive("merger", f"s{shard}"))
@@ -99,8 +99,10 @@ class MergerNode:
         self.flushing = threading.Thread(target=self._flush_loop, name="merger-flush", daemon=True)
         self._stop = threading.Event()
 
-    def _enqueue_callback(self):
-        return Callback(self.serve_queue.put, indirect=False)
+    def _enqueue_callback(self, stats: bool = False):
+        """Queries go to the serve thread tagged with the queryable that took them: a wildcard
+        (`roadmap/stats/**`) names no shard, so its key cannot tell."""
+        return Callback(lambda query: self.serve_queue.put((stats, query)), indirect=False)
 
     def _declare_tile(self, tile) -> None:
         if tile not in self.tile_queryables:
@@ -230,20 +232,21 @@ class MergerNode:
     def _serve_loop(self) -> None:
         while not self._stop.is_set():
             try:
-                query = self.serve_queue.get(timeout=0.1)
+                stats, query = self.serve_queue.get(timeout=0.1)
             except queue.Empty:
                 continue
             with query:
                 try:
-                    self._serve(query)
+                    self._serve(query, stats)
                 except Exception as exc:  # a bad query must never end the serve thread
                     logger.warning("query %s failed: %s", query.selector, exc)
                     query.reply_err(str(exc).encode())
 
-    def _serve(self, query) -> None:
+    def _serve(self, query, stats: bool = False) -> None:
         key = str(query.key_expr)
-        if key == keys.stats("merger", f"s{self.shard}"):
-            query.reply(key, codec.encode(self._stats()))  # stats flush first
+        if stats:  # its own key, also to roadmap/stats/** or roadmap/stats/merger/*
+            own = keys.stats("merger", f"s{self.shard}")
+            query.reply(own, codec.encode(self._stats()))  # stats flush first
             self._publish_changed()  # so every tile the stats list answers its queries now
             return
         tile = keys.parse_tile(key)

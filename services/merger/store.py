@@ -52,8 +52,24 @@ class ShardStore:
         if "packed_n" not in columns:  # a store from before packed patches
             self.db.execute("ALTER TABLE patches ADD COLUMN packed_n INTEGER")
 
+    @classmethod
+    def read_only(cls, path: str | Path) -> "ShardStore":
+        """An existing store opened for reading only (export, status, viewer of a demo's
+        output): nothing written, a shard running on it undisturbed."""
+        store = cls.__new__(cls)
+        store.path = Path(path)
+        if not store.path.is_file():
+            raise FileNotFoundError(f"no shard store at {store.path}")
+        store.db = sqlite3.connect(f"file:{store.path}?mode=ro", uri=True, isolation_level=None,
+                                   check_same_thread=False)
+        return store
+
     def close(self) -> None:
         self.db.close()
+
+    def meta(self, key: str) -> str | None:
+        row = self.db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return None if row is None else row[0]
 
     def check_meta(self, key: str, value: str) -> str | None:
         """Record a setting on first use; return the stored value (differs on a mismatch)."""
