@@ -2,8 +2,8 @@
 
     python -m services.bench.vehicle --out DIR [--quick]   -> DIR/vehicle.json
 
-A seeded synthetic mapping drive (services/vehicle/synthetic.py: curving two-lane road, RTK GNSS with
-a 300 m outage, 0.5 % odometry scale error, 0.02 deg/s gyro bias), label frames rendered in
+A seeded synthetic mapping drive (services/vehicle/synthetic.py: curving two-lane road, RTK GNSS
+with a 300 m outage, 0.5 % odometry scale error, 0.02 deg/s gyro bias), label frames rendered in
 memory. The mapper (segmentation -> IPM -> pose graph -> voting) runs pinned to one core with the
 ground-truth segmenter; then on two cores with the ONNX model (our model when it exists, else
 TwinLiteNet from ../shared/data) on the colourised frames. Also reports the pose accuracy of the

@@ -642,8 +642,9 @@ def _up_vehicles(sup: Supervisor, args, cfg: RoadmapConfig, out: Path) -> list[s
     worlds = _require("services.sim.worlds", "the simulator (services.sim.worlds)")
     sim = _require("services.sim.simulate", "the simulator (services.sim.simulate)")
     world = worlds.load_world(args.world, seed=args.seed)
+    images = cfg.demo.images or cfg.segmentation.kind == "onnx"
     logs = sim.simulate_drives(world, out / "drives" / "up", vehicles=args.vehicles, drives=1,
-                               profile="mapping", seed=args.seed, images=cfg.demo.images or cfg.segmentation.kind == "onnx",
+                               profile="mapping", seed=args.seed, images=images,
                                max_km=cfg.demo.max_km)
     names = []
     for log in logs:
