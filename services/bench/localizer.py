@@ -24,9 +24,9 @@ import numpy as np
 
 from common.config import LocalizerConfig
 from common.contours import decode_tile, encode_tile
+from services.eval.localization import localization_metrics
 from services.localizer.localizer import get_localizer, replay
 from services.localizer.map_cache import TileCache
-from services.localizer.metrics import localization_metrics
 from services.localizer.synthetic import frame_points, straight_road, synthetic_drive, world_tiles
 
 logger = logging.getLogger("bench.localizer")
@@ -310,7 +310,7 @@ def main() -> int:
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO)
     if args.world and args.fleet:
-        from services.localizer.metrics import summary_line
+        from services.eval.localization import summary_line
 
         res = fleet_accuracy(
             Path(args.out), world=args.world, km=args.km, vehicles=args.fleet, seed=args.seed
@@ -319,7 +319,7 @@ def main() -> int:
             sys.stdout.write(f"{name}: {summary_line(acc)}\n")
         return 0
     if args.world:
-        from services.localizer.metrics import summary_line
+        from services.eval.localization import summary_line
 
         acc = sim_accuracy(
             Path(args.out),

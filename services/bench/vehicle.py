@@ -157,7 +157,7 @@ def run(quick: bool = False) -> dict:
     # 3. the pose graph on real data
     seg = SHARED / "comma2k19" / "segment40"
     if seg.is_dir():
-        from services.vehicle.comma2k19 import evaluate
+        from services.eval.comma2k19 import evaluate
 
         result["mapper"]["comma2k19"] = evaluate(seg)
 
@@ -174,10 +174,10 @@ def karlsruhe_traversal(osm: Path, max_km: float | None = None) -> dict:
 
     from common.config import load_config
     from common.drivelog import DriveLog
+    from services.eval.mapping import local_map_quality
     from services.sim.simulate import simulate_drives
     from services.sim.worlds import load_world
     from services.vehicle.node import build_mapper
-    from services.vehicle.quality import local_map_quality
 
     world = load_world(f"lanelet2:{osm}")
     with tempfile.TemporaryDirectory() as tmp:

@@ -20,10 +20,10 @@ from common.config import RoadmapConfig, to_toml
 from common.drivelog import DriveLog
 from common.errors import ConfigError, RoadmapError
 from common.grid import owner_of_tile, tile_of_point
-from services.demo import evaluate as ev
 from services.demo import figures
 from services.demo.fetch import load_tiles, run_fetch
 from services.demo.procs import ProcessError, Supervisor
+from services.eval import map as ev
 
 logger = logging.getLogger("roadmap.demo")
 

@@ -20,10 +20,10 @@ from common.drivelog import DriveLog
 from common.errors import DriveLogError
 from common.geometry import quat_wxyz_from_yaw, transform_points_2d
 from common.messages import Pose
+from services.eval.localization import localization_metrics, summary_line
 from services.localizer.frames import FramePoints
 from services.localizer.localizer import get_localizer, replay
 from services.localizer.map_cache import TileCache
-from services.localizer.metrics import localization_metrics, summary_line
 from services.localizer.tiles import TileClient, tiles_needed
 
 logger = logging.getLogger(__name__)

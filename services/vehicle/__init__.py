@@ -4,4 +4,4 @@ pose_graph (gtsam ISAM2, the only gtsam import) <- estimator (wheel + gyro odome
 online scale / gyro-bias calibration, settling) <- mapper (segment -> IPM -> wait for the settled
 pose -> voting grid -> sealed GridPatches) -> outbox (durable until acked) -> node (`roadmap
 vehicle`: replay a drive log, upload to the owner shards, summary.json + local_map.npz).
-quality: local map vs world truth; comma2k19: the pose graph on a real drive."""
+Its accuracy against truth: services/eval."""

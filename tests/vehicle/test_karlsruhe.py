@@ -7,8 +7,8 @@ import pytest
 
 from common.config import load_config
 from common.drivelog import DriveLog
+from services.eval.mapping import local_map_quality
 from services.vehicle.node import StageTimer, build_mapper, map_log, pose_errors
-from services.vehicle.quality import local_map_quality
 
 
 @pytest.fixture(scope="module")
