@@ -20,10 +20,17 @@ from common.config import RoadmapConfig, to_toml
 from common.drivelog import DriveLog
 from common.errors import ConfigError, RoadmapError
 from common.grid import owner_of_tile, tile_of_point
+from common.trajectory import read_tum
 from services.demo import figures
 from services.demo.fetch import load_tiles, run_fetch
 from services.demo.procs import ProcessError, Supervisor
 from services.eval import map as ev
+from services.eval.localization import (
+    evaluate_localizer,
+    interp_poses,
+    localized_frames,
+    pose_errors,
+)
 
 logger = logging.getLogger("roadmap.demo")
 
@@ -261,13 +268,13 @@ class DemoRun:
         return loc
 
     def _localizer_run(self, sup: Supervisor, log: Path, name: str, extra: list[str]) -> dict:
+        """The localizer process on the drive; its accuracy from its outputs (the harness)."""
         out = self.out / name
         sup.start_localizer(name, log, out, extra)
         sup.wait(name, self.d.localizer_timeout_s)
-        try:
-            return json.loads((out / "localization.json").read_text())
-        except (OSError, ValueError) as exc:
-            raise DemoError(f"{name} wrote no localization.json in {out} ({exc})") from exc
+        if not (out / "summary.json").is_file():
+            raise DemoError(f"{name} wrote no summary.json in {out}")
+        return evaluate_localizer(out, DriveLog(log))
 
     # -- repaint -----------------------------------------------------------------------------
 
@@ -358,7 +365,7 @@ class DemoRun:
         report["localization"] = loc
         report["pipeline"] = self._pipeline(stats)
         report["run"] = self._run_section(t)
-        self._figures(mosaic, raw, decoded, truth, logs["production"])
+        self._figures(mosaic, raw, decoded, truth, logs["production"], loc["convergence_s"])
         return report
 
     def _world_section(self, world) -> dict:
@@ -471,49 +478,43 @@ class DemoRun:
                         acc.setdefault(stage, {}).setdefault(k, []).append(float(x))
         return {st: {k: round(float(np.mean(v)), 3) for k, v in d.items()} for st, d in acc.items()}
 
-    def _figures(self, mosaic, raw, decoded, truth, prod_log: Path) -> None:
+    def _figures(self, mosaic, raw, decoded, truth, prod_log: Path, conv) -> None:
         figures.save_map(raw, self.out / "map.png")
         figures.save_map(truth, self.out / "map_truth.png")
         figures.side_by_side([("merged map (before compression)", raw),
                               ("decoded from contours (after)", decoded),
                               ("ground truth", truth)], self.out / "compression.png")
-        self._trajectory_figures(mosaic, raw, prod_log)
+        self._trajectory_figures(mosaic, raw, prod_log, conv)
 
-    def _trajectory_figures(self, mosaic, raw, prod_log: Path) -> None:
+    def _trajectory_figures(self, mosaic, raw, prod_log: Path, conv) -> None:
         tum = self.out / "localizer" / "trajectory.tum"
         if not tum.exists():
             logger.warning("no %s: skipping the trajectory figures", tum)
             return
-        est = ev.read_tum(tum.read_text())
+        est = read_tum(tum.read_text())
         log = DriveLog(prod_log)
         t_ns = log.streams.get("truth_t_ns", log.streams["frame_t_ns"])
         poses = log.streams.get("truth_pose", log.streams["frame_pose_true"])
         if len(est) == 0:
             return
-        truth = ev.interp_poses(est[:, 0], t_ns / 1e9, poses)
-        errs = ev.pose_errors(est[:, 1:], truth)
+        truth = interp_poses(est[:, 0], t_ns / 1e9, poses)
+        errs = pose_errors(est[:, 1:], truth)
         pos = np.hypot(errs["x_m"], errs["y_m"])
         figures.trajectory_by_error(raw, mosaic.to_cells, truth[:, :2], est[:, 1:3], pos,
                                     self.out / "trajectory.png")
-        scored = self._scored_frames(est[:, 0], log.streams["frame_t_ns"])
+        scored = self._scored_frames(est[:, 0], log, conv)
         figures.error_histograms({k: v[scored] for k, v in errs.items()}, self.out / "errors.png")
 
-    def _scored_frames(self, t_est_s: np.ndarray, frame_t_ns: np.ndarray) -> np.ndarray:
+    def _scored_frames(self, t_est_s: np.ndarray, log: DriveLog, conv) -> np.ndarray:
         """The estimates the report's statistics are taken over: on-map frames after
-        convergence (localizer/diagnostics.jsonl, localization.json); all when unknown."""
-        loc_dir = self.out / "localizer"
-        try:
-            rows = [json.loads(line) for line in (loc_dir / "diagnostics.jsonl").open()]
-            conv = json.loads((loc_dir / "localization.json").read_text())["convergence_s"]
-        except (OSError, ValueError, KeyError):
+        convergence (the harness's, from localizer/); all when no frame was localized."""
+        frames = localized_frames(self.out / "localizer", log)
+        if len(frames.t_ns) == 0:
             return np.ones(len(t_est_s), dtype=bool)
-        if not rows:
-            return np.ones(len(t_est_s), dtype=bool)
-        t_diag = np.array([r["t_ns"] for r in rows], dtype=np.int64)
-        on_map = np.array([bool(r.get("on_map", True)) for r in rows])
-        # nearest diagnostics row of each estimate (TUM times are float seconds)
+        t_diag, on_map, frame_t_ns = frames.t_ns, frames.on_map, log.streams["frame_t_ns"]
+        # nearest localized frame of each estimate (TUM times are float seconds)
         rel = t_est_s - int(t_diag[0]) * 1e-9
-        k = np.clip(np.searchsorted((t_diag - t_diag[0]) * 1e-9, rel - 1e-3), 0, len(rows) - 1)
+        k = np.clip(np.searchsorted((t_diag - t_diag[0]) * 1e-9, rel - 1e-3), 0, len(t_diag) - 1)
         t0 = (int(t_diag[0]) - int(frame_t_ns[0])) * 1e-9
         after = rel + t0 >= conv - 1e-3 if conv is not None else np.zeros(len(k), dtype=bool)
         return on_map[k] & after
