@@ -31,6 +31,9 @@ from services.eval.localization import (
     localized_frames,
     pose_errors,
 )
+from services.eval.mapping import mapping_section
+from services.eval.mapping import pose_errors as vehicle_pose_errors
+from services.vehicle.outputs import read_poses
 
 logger = logging.getLogger("roadmap.demo")
 
@@ -67,6 +70,7 @@ class DemoRun:
         self.stage_ms: dict[str, float] = {}
         self.chaos_events: list[dict] = []
         self.vehicle_summaries: list[dict] = []
+        self.vehicles: list[tuple[Path, Path]] = []  # (STATE, drive log), as vehicles finish
         self.max_km = self.d.small_max_km if args.small else self.d.max_km
         if args.scenario == "repaint":
             self.max_km = max(self.max_km, self.d.repaint_min_km)
@@ -169,25 +173,26 @@ class DemoRun:
     def _map(self, sup: Supervisor, logs: list[Path]) -> None:
         """One vehicle process per drive log, all at once; chaos kills one shard and one vehicle."""
         _require("services.vehicle.node", "the vehicle service (services.vehicle.node)")
-        names = [self._start_vehicle(sup, log) for log in logs]
+        started = {self._start_vehicle(sup, log): log for log in logs}
         if self.args.chaos:
-            self._chaos(sup, names[0], logs)
-        self._wait_vehicles(sup, names)
+            self._chaos(sup, next(iter(started)), logs)
+        self._wait_vehicles(sup, started)
 
     def _start_vehicle(self, sup: Supervisor, log: Path) -> str:
         name = f"vehicle-{log.parent.name}-{log.name}"
         sup.start_vehicle(name, log, vehicle_id=log.name, state=self.out / "run" / name)
         return name
 
-    def _wait_vehicles(self, sup: Supervisor, names: list[str]) -> None:
+    def _wait_vehicles(self, sup: Supervisor, started: dict[str, Path]) -> None:
         deadline = time.monotonic() + self.d.vehicle_timeout_s
-        pending, next_report = list(names), time.monotonic() + 10.0
+        pending, next_report = list(started), time.monotonic() + 10.0
         while pending:
             sup.check_alive(self._shard_names())
             for n in list(pending):
                 if sup.procs[n].poll() is not None:
                     sup.wait(n, 0)  # raises with the log tail on a non-zero exit
                     self.vehicle_summaries.append(self._read_summary(n))
+                    self.vehicles.append((self.out / "run" / n, started[n]))
                     pending.remove(n)
                     logger.info("%s done (%d left)", n, len(pending))
             if time.monotonic() > deadline:
@@ -196,7 +201,7 @@ class DemoRun:
             if pending and time.monotonic() > next_report:
                 applied = _applied(run_fetch(sup.router_endpoint, "stats", self.args.shards))
                 logger.info("mapping: %d of %d vehicles still running, shards applied %d patches",
-                            len(pending), len(names), applied)
+                            len(pending), len(started), applied)
                 next_report = time.monotonic() + 10.0
             time.sleep(0.2)
 
@@ -422,22 +427,11 @@ class DemoRun:
         return segmenter_for(self.cfg, "vehicle", camera=camera)
 
     def _mapping_section(self) -> dict:
-        s = self.vehicle_summaries
-        frames = [int(v.get("frames", 0)) for v in s]
-
-        def agg(key):
-            rows = [(v.get(key) or {}, f) for v, f in zip(s, frames, strict=True)]
-            rows = [(r, f) for r, f in rows if r.get("mean") is not None]
-            if not rows:
-                return {"mean": None, "max": None}
-            w = sum(f for _, f in rows) or 1
-            return {"mean": sum(r["mean"] * f for r, f in rows) / w,
-                    "max": max(r.get("max") or 0.0 for r, _ in rows)}
-
-        return {"pose_error_m": agg("pose_error_m"),
-                "outage_pose_error_m": agg("outage_pose_error_m"),
-                "odometry_only_error_m": agg("odometry_only_error_m"), "frames": sum(frames),
-                "vehicles": len(s), "segmenter": self.kind}
+        """The vehicles' pose errors (their poses.npz vs their drive's truth), over the fleet."""
+        errors = [vehicle_pose_errors(read_poses(state), DriveLog(log).streams["frame_pose_true"])
+                  for state, log in self.vehicles]
+        return mapping_section(list(zip(self.vehicle_summaries, errors, strict=True)),
+                               segmenter=self.kind)
 
     def _pipeline(self, stats: dict) -> dict:
         v = self.vehicle_summaries

@@ -1,6 +1,7 @@
-"""The evaluation harness: accuracy against the truth that only the simulator knows (true poses
-in the drive logs, the world's ground-truth raster), kept out of the product services.
+"""The evaluation harness: accuracy of what the services output, against the truth that only the
+simulator knows (true poses in the drive logs, the world's ground-truth raster).
 
-localization: the report's localization section (errors, availability, convergence); mapping: a
-vehicle's local map vs the world; map: the merged map vs the world (report.json's map section,
-the repaint check); comma2k19: the pose graph on a real drive vs its reference poses."""
+The services never read truth. Each module here computes the report.json section of its name
+from their outputs: localization (the localizer's diagnostics.jsonl and tiles.npz vs the drive
+log's true poses), mapping (a mapping vehicle's poses.npz and local map vs truth), map (the
+merged tiles vs the world); comma2k19: the pose graph on a real drive vs its reference poses."""
