@@ -15,13 +15,6 @@ from common.classes import MARKINGS, NAMES, Cls
 from common.evaluation import precision_recall
 from common.grid import CELL_M, TILE_CELLS, tile_origin_m
 
-# The paper's numbers (Qin et al. 2021, Table I and Sec. V-B), for the printed comparison.
-PAPER = {
-    "x_m": {"mean": 0.043, "p90": 0.104},
-    "y_m": {"mean": 0.040, "p90": 0.092},
-    "yaw_deg": {"mean": 0.124, "p90": 0.240},
-    "kb_per_km": 36.0,
-}
 # Repaint rule: the map follows when it shows >= 50 % of the new line and <= 20 % of the old one.
 FOLLOW_NEW_MIN = 0.5
 FOLLOW_OLD_MAX = 0.2
