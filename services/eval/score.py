@@ -11,7 +11,7 @@ import numpy as np
 from common.camera import build_ipm_lookup
 from common.classes import Cls
 from common.drivelog import DriveLog
-from services.localizer.metrics import convergence_index, pose_errors
+from services.eval.localization import convergence_index, pose_errors
 
 THRESHOLD_M = 0.5  # availability and integrity: an error above this is a wrong pose
 HOLD_S = 1.0  # convergence: the error stays below THRESHOLD_M this long

@@ -58,7 +58,10 @@ class TileClient:
         timeout_s: float = BusConfig.query_timeout_s,
         retry_missing_s: float = 5.0,
         follow_updates: bool = True,
+        on_tile=None,
     ):
+        """on_tile(msg): called with every Tile message stored in the cache (fetched or an
+        update), e.g. to record the map the car received."""
         from common.bus import FifoChannel
 
         if codec_name not in ("contour", "raw"):
@@ -66,6 +69,7 @@ class TileClient:
         self.session, self.cache = session, cache
         self.params = "?codec=raw" if codec_name == "raw" else ""
         self.timeout_s, self.retry_missing_s = timeout_s, retry_missing_s
+        self.on_tile = on_tile
         self._missing: dict[TileId, float] = {}
         self.fetched = self.missing = self.updates = self.rejected = 0
         self.bytes = 0
@@ -147,6 +151,8 @@ class TileClient:
         self.decode_ms.append((time.perf_counter() - t0) * 1e3)
         self.bytes += len(msg.data)
         self.cache.put(msg.tile, msg.version, labels)
+        if self.on_tile is not None:
+            self.on_tile(msg)
         return True
 
     def _reject(self, tile: TileId, exc: CodecError) -> None:

@@ -5,9 +5,10 @@ writes sealed patches to the on-disk outbox, and an uploader thread sends them t
 `roadmap/ingest/s<owner>` (waiting while the owner shard is not alive) until every patch is acked;
 a batch the shard refused as `throttled` is retried after a backoff. Holds the liveliness token
 `roadmap/alive/vehicle/<id>` while it runs.
-Writes STATE/summary.json, STATE/local_map.npz and STATE/config.toml."""
+Writes STATE/summary.json (counters), STATE/poses.npz and STATE/trajectory.tum (the committed
+pose-graph poses), STATE/local_map.npz and STATE/config.toml (services/vehicle/outputs.py); the
+accuracy of poses and map is the evaluation harness's (services/eval/mapping.py)."""
 
-import json
 import logging
 import math
 import threading
@@ -24,9 +25,10 @@ from common.drivelog import DriveLog
 from common.grid import owner_of_tile, region_of_tile
 from common.messages import THROTTLED, GridPatch, IngestAck, IngestBatch
 from common.segmentation import segmenter_for
-from services.vehicle.estimator import PoseEstimator, dead_reckon
+from services.vehicle.estimator import PoseEstimator
 from services.vehicle.mapper import VehicleMapper
 from services.vehicle.outbox import Outbox
+from services.vehicle.outputs import write_local_map, write_poses, write_summary
 
 logger = logging.getLogger(__name__)
 
@@ -226,147 +228,104 @@ class Uploader(threading.Thread):
         self._live.undeclare()
 
 
-# -- summary -----------------------------------------------------------------------------------
-
-
-def _stats(err: np.ndarray):
-    err = err[np.isfinite(err)]
-    if not len(err):
-        return {"mean": None, "max": None}
-    return {"mean": float(err.mean()), "max": float(err.max())}
-
-
-def pose_errors(mapper: VehicleMapper, truth: np.ndarray) -> dict:
-    """Position errors vs truth: all frames, GNSS-outage frames, and raw odometry in outages.
-
-    Odometry-only: uncalibrated wheel + gyro dead reckoning from the optimized pose of the last
-    GNSS-covered frame before each outage, through the outage (what the map would get without
-    the pose graph)."""
-    est = mapper.estimator
-    n = len(mapper.poses)
-    if n == 0:
-        return {
-            k: {"mean": None, "max": None}
-            for k in ("pose_error_m", "outage_pose_error_m", "odometry_only_error_m")
-        }
-    poses = np.array([mapper.poses[i] for i in range(n)])
-    err = np.linalg.norm(poses[:, :2] - truth[:n, :2], axis=1)
-    outage = np.array([not est.covered(i) for i in range(n)])
-    raw = est.raw_deltas()
-    odo_err = []
-    i = 0
-    while i < n:
-        if not outage[i] or i == 0:
-            i += 1
-            continue
-        j = i
-        while j < n and outage[j]:
-            j += 1
-        dr = dead_reckon(poses[i - 1], raw[i:j])[1:]
-        odo_err.append(np.linalg.norm(dr[:, :2] - truth[i:j, :2], axis=1))
-        i = j
-    odo = np.concatenate(odo_err) if odo_err else np.zeros(0)
-    return {
-        "pose_error_m": _stats(err),
-        "outage_pose_error_m": _stats(err[outage]),
-        "odometry_only_error_m": _stats(odo),
-    }
-
-
-def _write_json(path: Path, obj) -> None:
-    path.write_text(json.dumps(obj, indent=1, default=lambda o: None, allow_nan=False))
-
-
-def _clean(obj):
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    return obj
-
-
 # -- entry point -------------------------------------------------------------------------------
 
 
 def main(args, cfg: RoadmapConfig) -> int:
     log = DriveLog(args.log)
-    vehicle = args.id or log.meta.vehicle
     state = Path(args.state or Path(args.log) / ".vehicle")
     state.mkdir(parents=True, exist_ok=True)
     (state / "config.toml").write_text(to_toml(cfg))
-    stop = stop_event()
-    mapper = build_mapper(log, vehicle, cfg)
-    outbox = Outbox(state)
-    sealed = outbox.sealed(log.meta.traversal)
-    if sealed:
-        logger.info("resuming: %d patch sequences already in the outbox or acked", sealed)
-    timer = StageTimer()
-
-    def on_patches(patches):
-        new = [
-            p
-            for p in patches
-            if int(p.patch_id.rsplit(".", 1)[1]) >= outbox.sealed(log.meta.traversal)
-        ]
-        outbox.put(new)
-        if mapper.seq > outbox.sealed(log.meta.traversal):
-            outbox.set_sealed(log.meta.traversal, mapper.seq)
-        uploader.wake.set()
-
-    t0 = time.perf_counter()
+    run = VehicleRun(log, args.id or log.meta.vehicle, cfg, state)
     with open_session(cfg.bus, "vehicle") as session:
-        token = session.liveliness().declare_token(keys.alive("vehicle", vehicle))
-        uploader = Uploader(session, outbox, cfg, stop, vehicle=vehicle)
-        uploader.start()
+        run.map_and_upload(session)  # map here while the uploader thread sends and collects acks
+    run.write_outputs()  # summary.json, poses.npz, trajectory.tum, local_map.npz
+    return 0 if run.complete() else 1
+
+
+class VehicleRun:
+    """One `roadmap vehicle` run: the mapper on one drive log, its outbox and its uploader."""
+
+    def __init__(self, log: DriveLog, vehicle: str, cfg: RoadmapConfig, state: Path):
+        self.log, self.vehicle, self.cfg, self.state = log, vehicle, cfg, state
+        self.stop = stop_event()
+        self.mapper = build_mapper(log, vehicle, cfg)
+        self.outbox = Outbox(state)
+        self.resumed_from_seq = self.outbox.sealed(log.meta.traversal)
+        if self.resumed_from_seq:
+            logger.info("resuming: %d patch sequences already in the outbox or acked",
+                        self.resumed_from_seq)
+        self.timer = StageTimer()
+        self.uploader: Uploader | None = None
+        self.finished = self.stopped_upload = False
+        self.map_s = self.pending = None
+        self.t0 = time.perf_counter()
+
+    def on_patches(self, patches: list[GridPatch]) -> None:
+        """Sealed patches into the outbox (sequences sealed before a restart are there already),
+        then wake the uploader."""
+        traversal = self.log.meta.traversal
+        sealed = self.outbox.sealed(traversal)
+        self.outbox.put([p for p in patches if int(p.patch_id.rsplit(".", 1)[1]) >= sealed])
+        if self.mapper.seq > self.outbox.sealed(traversal):
+            self.outbox.set_sealed(traversal, self.mapper.seq)
+        self.uploader.wake.set()
+
+    def map_and_upload(self, session) -> None:
+        """Map the whole log, then wait until every patch is acked (or the run is stopped)."""
+        self.token = session.liveliness().declare_token(keys.alive("vehicle", self.vehicle))
+        self.uploader = Uploader(session, self.outbox, self.cfg, self.stop, vehicle=self.vehicle)
+        self.uploader.start()
         try:
-            finished = map_log(log, mapper, on_patches, stop, timer)
-            map_s = time.perf_counter() - t0
-            uploader.mapping_done.set()
-            uploader.wake.set()
-            while uploader.is_alive() and not stop.is_set():
-                uploader.join(0.2)
+            self.finished = map_log(self.log, self.mapper, self.on_patches, self.stop, self.timer)
+            self.map_s = time.perf_counter() - self.t0
+            self.uploader.mapping_done.set()
+            self.uploader.wake.set()
+            while self.uploader.is_alive() and not self.stop.is_set():
+                self.uploader.join(0.2)
         finally:
-            stop_upload = stop.is_set()
-            stop.set()
-            uploader.join(10.0)
-            uploader.close()
-            token.undeclare()
-    counts = outbox.counts()
-    pending = len(outbox.pending())
-    summary = {
-        "vehicle": vehicle,
-        "traversal": log.meta.traversal,
-        "frames": mapper.frames_committed,
-        # distinct patches that left the vehicle, also in runs before a restart (acked ones)
-        "patches_sent": len(uploader.sent_ids | outbox.acked_ids()),
-        "send_attempts": uploader.sent,
-        "bytes_sent": uploader.bytes_sent,  # ingest payloads of this run, retries included
-        "patches_acked": counts["acked"],
-        "patches_accepted": counts["accepted"],
-        "duplicates": counts["duplicates"],
-        "patches_pending": pending,
-        "errors": uploader.errors,
-        "throttled": uploader.throttled,
-        "resumed_from_seq": sealed,
-        **pose_errors(mapper, log.streams["frame_pose_true"]),
-        "calibration": {
-            "odometry_scale": mapper.estimator.calibration.scale,
-            "gyro_bias_dps": math.degrees(mapper.estimator.calibration.gyro_bias_rps),
-        },
-        "per_stage_ms": timer.summary(),
-        "mapping_frames_per_s": mapper.frames_committed / map_s if finished and map_s > 0 else None,
-        "wall_s": time.perf_counter() - t0,
-    }
-    _write_json(state / "summary.json", _clean(summary))
-    labels, x0, y0 = mapper.local_map()
-    np.savez_compressed(state / "local_map.npz", labels=labels, origin_m=np.array([x0, y0]))
-    logger.info(
-        "vehicle %s: %d frames, %d patches acked, %d pending",
-        vehicle,
-        mapper.frames_committed,
-        counts["acked"],
-        pending,
-    )
-    if not finished or stop_upload or pending:
-        return 1
-    return 0
+            self.stopped_upload = self.stop.is_set()
+            self.stop.set()
+            self.uploader.join(10.0)
+            self.uploader.close()
+            self.token.undeclare()
+
+    def write_outputs(self) -> None:
+        counts = self.outbox.counts()
+        self.pending = len(self.outbox.pending())
+        write_summary(self.state, self._summary(counts))
+        write_poses(self.state, self.mapper.trajectory())
+        write_local_map(self.state, *self.mapper.local_map())
+        logger.info("vehicle %s: %d frames, %d patches acked, %d pending", self.vehicle,
+                    self.mapper.frames_committed, counts["acked"], self.pending)
+
+    def complete(self) -> bool:
+        """Mapped to the end and every patch acked, without being stopped."""
+        return self.finished and not self.stopped_upload and not self.pending
+
+    def _summary(self, counts: dict) -> dict:
+        m, up = self.mapper, self.uploader
+        return {
+            "vehicle": self.vehicle,
+            "traversal": self.log.meta.traversal,
+            "frames": m.frames_committed,
+            # distinct patches that left the vehicle, also in runs before a restart (acked ones)
+            "patches_sent": len(up.sent_ids | self.outbox.acked_ids()),
+            "send_attempts": up.sent,
+            "bytes_sent": up.bytes_sent,  # ingest payloads of this run, retries included
+            "patches_acked": counts["acked"],
+            "patches_accepted": counts["accepted"],
+            "duplicates": counts["duplicates"],
+            "patches_pending": self.pending,
+            "errors": up.errors,
+            "throttled": up.throttled,
+            "resumed_from_seq": self.resumed_from_seq,
+            "calibration": {
+                "odometry_scale": m.estimator.calibration.scale,
+                "gyro_bias_dps": math.degrees(m.estimator.calibration.gyro_bias_rps),
+            },
+            "per_stage_ms": self.timer.summary(),
+            "mapping_frames_per_s": (m.frames_committed / self.map_s
+                                     if self.finished and self.map_s > 0 else None),
+            "wall_s": time.perf_counter() - self.t0,
+        }

@@ -7,12 +7,12 @@ import pytest
 
 from common.classes import Cls
 from common.config import LocalizerConfig
+from services.eval.localization import localization_metrics
 from services.localizer.ekf import PoseFilter
 from services.localizer.icp import Icp
 from services.localizer.init import CoarseSearch
 from services.localizer.localizer import get_localizer, replay
 from services.localizer.map_cache import TileCache, class_slots
-from services.localizer.metrics import localization_metrics
 from services.localizer.synthetic import fill_cache, frame_points, straight_road, synthetic_drive
 
 
