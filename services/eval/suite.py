@@ -46,7 +46,7 @@ def shared_worlds() -> list[str]:
 def suite_drives(name: str) -> list[Drive]:
     """The drives of suite `name` (default | quick)."""
     if name == "quick":
-        worlds = (shared_worlds()[:1] or ["town"]) + ["town"]
+        worlds = shared_worlds()[:1] + ["town"]
         return [Drive(w, s) for w in worlds for s in QUICK_SEEDS]
     if name == "default":
         worlds = shared_worlds() + ["town"]
