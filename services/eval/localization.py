@@ -10,10 +10,12 @@ after convergence. Convergence: the first frame from which the position error st
 availability threshold for `hold_s`; availability: share of frames after it with error < 0.5 m
 (a frame without an estimate counts as unavailable).
 
-With `on_map` (per frame: the map the car held covers the camera's view at the true pose), the
-statistics and the availability are those of the on-map frames after convergence, as in the
-paper's evaluation (a car off the mapped area has nothing to match); `all_frames` keeps them over
-every frame."""
+With `on_map` (per frame: the map covers the camera's view at the true pose), the statistics and
+the availability are those of the on-map frames after convergence, as in the paper's evaluation
+(a car off the mapped area has nothing to match); `all_frames` keeps them over every frame. The
+map of a frame is every tile the car had received by then, in its latest version (tiles.npz);
+the car's own LRU evictions are not replayed (with the default cache it evicts only tiles it no
+longer wants around its estimate)."""
 
 import tomllib
 from dataclasses import dataclass
@@ -159,7 +161,7 @@ class LocalizedFrames:
     frame_t_ns: np.ndarray  # (N,) the frame's time in the drive log
     est: np.ndarray  # (N, 3) x, y, yaw; NaN without an estimate
     truth: np.ndarray  # (N, 3) true pose of the frame; NaN if unknown
-    on_map: np.ndarray  # (N,) bool: the map the car held covers the view at the true pose
+    on_map: np.ndarray  # (N,) bool: the tiles received by then cover the view at the true pose
 
 
 def localized_frames(out: Path, log: DriveLog) -> LocalizedFrames:
