@@ -280,13 +280,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("dump-config", help="print the effective configuration as TOML")
     _common(p)
-    for add_parser in (_export_parser, _viewer_parser, _status_parser, _trajectory_parser):
-        add_parser(sub)
+    for name, (text, options) in TOOL_PARSERS.items():
+        options(sub.add_parser(name, help=text))
     return parser
 
 
-def _export_parser(sub) -> None:
-    p = sub.add_parser("export", help="export the map as GeoJSON or Lanelet2 OSM (WGS84)")
+def _export(p: argparse.ArgumentParser) -> None:
     p.add_argument("--format", choices=["geojson", "lanelet2"], required=True)
     p.add_argument("--out", required=True, help="file to write (.geojson / .osm)")
     p.add_argument("--from", dest="from_dir", metavar="DIR", default=None,
@@ -299,8 +298,7 @@ def _export_parser(sub) -> None:
     _common(p)
 
 
-def _viewer_parser(sub) -> None:
-    p = sub.add_parser("viewer", help="a live web map of the fleet (local page, no internet)")
+def _viewer(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", type=int, default=8765)
     p.add_argument("--host", default="127.0.0.1", help="address to serve on")
     p.add_argument("--from", dest="from_dir", metavar="DIR", default=None,
@@ -310,8 +308,7 @@ def _viewer_parser(sub) -> None:
     _common(p)
 
 
-def _status_parser(sub) -> None:
-    p = sub.add_parser("status", help="the fleet at a glance: shards, tiles, rates, who is alive")
+def _status(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--from", dest="from_dir", metavar="DIR", default=None,
                    help="a demo's output folder or shard stores instead of a live fleet")
@@ -320,9 +317,7 @@ def _status_parser(sub) -> None:
     _common(p)
 
 
-def _trajectory_parser(sub) -> None:
-    p = sub.add_parser("trajectory", help="a demo's localizer trajectory and its ground truth "
-                                          "as TUM or KITTI files (for evo)")
+def _trajectory(p: argparse.ArgumentParser) -> None:
     p.add_argument("--from", dest="from_dir", metavar="DIR", required=True,
                    help="a demo's output folder")
     p.add_argument("--format", choices=["tum", "kitti"], default="tum")
@@ -330,6 +325,16 @@ def _trajectory_parser(sub) -> None:
     p.add_argument("--localizer", default="localizer",
                    help="the localizer run's folder in DIR (default localizer)")
     _common(p)
+
+
+# where the map and the fleet leave the system: name -> (help, options)
+TOOL_PARSERS = {
+    "export": ("export the map as GeoJSON or Lanelet2 OSM (WGS84)", _export),
+    "viewer": ("a live web map of the fleet (local page, no internet)", _viewer),
+    "status": ("the fleet at a glance: shards, tiles, rates, who is alive", _status),
+    "trajectory": ("a demo's localized trajectory and its ground truth as TUM or KITTI files "
+                   "(for evo)", _trajectory),
+}
 
 
 def dump_config(args, cfg) -> int:
