@@ -93,7 +93,8 @@ def _crossings(features: list[MapFeature]):
         edges = [np.stack([c + u0 * along + w0 * walk, c + u0 * along + w1 * walk])
                  for u0 in (u.min() - half, u.max() + half)]
         tiles = {t: v for k in group for t, v in stripes[k].tiles.items()}
-        out.append((edges[1], edges[0], tiles))  # left of the walking direction first
+        # both edges run along +walk; left of it lies -along (walk is along turned +90 deg)
+        out.append((edges[0], edges[1], tiles))
     return out
 
 

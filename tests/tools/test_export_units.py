@@ -89,6 +89,16 @@ def test_lanelet2_chains_dashes_joins_cut_lines_and_tags_widths():
     root = ET.fromstring(export_map(_tiles(_world_raster()), ORIGIN, "lanelet2"))
     (rel,) = root.iter("relation")
     assert {t.get("k"): t.get("v") for t in rel.findall("tag")}["subtype"] == "crosswalk"
+    # the crosswalk lanelet's left bound lies left of the direction both bounds run
+    nodes = {n.get("id"): (float(n.get("lon")), float(n.get("lat"))) for n in root.iter("node")}
+    bounds = {}
+    for m in rel.findall("member"):
+        way = next(w for w in root.iter("way") if w.get("id") == m.get("ref"))
+        bounds[m.get("role")] = np.array([nodes[nd.get("ref")] for nd in way.findall("nd")])
+    direction = bounds["left"][-1] - bounds["left"][0]
+    assert np.dot(direction, bounds["right"][-1] - bounds["right"][0]) > 0
+    side = bounds["left"].mean(axis=0) - bounds["right"].mean(axis=0)
+    assert direction[0] * side[1] - direction[1] * side[0] > 0  # left: counter-clockwise side
 
 
 def test_crossing_edges_run_across_the_stripes_at_their_ends():
