@@ -13,12 +13,16 @@ import threading
 
 import zenoh
 
+from common import security
 from common.config import BusConfig
+from common.errors import ConfigError, TransportError
 
 logger = logging.getLogger(__name__)
 
 
-def make_zenoh_config(bus: BusConfig) -> zenoh.Config:
+def make_zenoh_config(bus: BusConfig, role: str | None = None) -> zenoh.Config:
+    """The zenoh.Config of a process; with bus.tls_dir, mutual TLS with `role`'s certificate
+    (a router also enforces the role ACL: common/security.py)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(bus.mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
@@ -33,13 +37,49 @@ def make_zenoh_config(bus: BusConfig) -> zenoh.Config:
         conf.insert_json5("connect/exit_on_failure", "false")
     conf.insert_json5("transport/link/tx/lease", str(int(bus.lease_ms)))
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(bool(bus.shared_memory)))
+    if bus.max_message_bytes > 0:
+        conf.insert_json5("transport/link/rx/max_message_size", str(int(bus.max_message_bytes)))
+    if bus.tls_dir:
+        _secure(conf, bus, role)
     return conf
 
 
+def _secure(conf: zenoh.Config, bus: BusConfig, role: str | None) -> None:
+    if role is None:
+        raise ConfigError("bus.tls_dir is set: this process needs a role for its certificate")
+    router = bus.mode == "router"
+    check_secure_endpoints(bus.listen or bus.connect[:1] if router else bus.connect + bus.listen)
+    for key, value in security.tls_settings(bus.tls_dir, role, listen=router or bool(bus.listen)
+                                            ).items():
+        conf.insert_json5(key, json.dumps(value))
+    if router:
+        conf.insert_json5("access_control", json.dumps(security.acl_config()))
+
+
+def check_secure_endpoints(endpoints) -> None:
+    """On a secure bus every endpoint is tls/: a tcp/ one would bypass mutual TLS and the ACL."""
+    if any(not e.startswith("tls/") for e in endpoints):
+        raise ConfigError(f"bus.tls_dir is set: endpoints must be tls/HOST:PORT, got "
+                          f"{list(endpoints)}")
+
+
 @contextlib.contextmanager
-def open_session(bus: BusConfig):
-    """`with open_session(cfg.bus) as session:` -- always closed, even on exceptions."""
-    session = zenoh.open(make_zenoh_config(bus))
+def open_session(bus: BusConfig, role: str | None = None,
+                 connect_timeout_s: float | None = None):
+    """`with open_session(cfg.bus, "merger") as session:` -- always closed, even on exceptions.
+    `role` picks the certificate on a secure bus (bus.tls_dir; common.security.ROLES).
+
+    Nodes wait for their router however long it takes; a one-shot tool (status, export) gives
+    connect_timeout_s and gets a TransportError when no router answers within it."""
+    conf = make_zenoh_config(bus, role)
+    if connect_timeout_s is not None and bus.mode == "client":
+        conf.insert_json5("connect/timeout_ms", str(int(connect_timeout_s * 1000)))
+        conf.insert_json5("connect/exit_on_failure", "true")
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as exc:
+        raise TransportError(f"no Zenoh router answers at {', '.join(bus.connect)} "
+                             f"({exc})") from exc
     try:
         yield session
     finally:
@@ -59,15 +99,20 @@ def stop_event() -> threading.Event:
     return event
 
 
-def run_router(listen: list[str], stop: threading.Event, peers: list[str] | None = None) -> None:
-    """A Zenoh router inside this Python process (no zenohd on PyPI; ZENOH.md 0)."""
-    bus = BusConfig(mode="router", listen=listen, connect=[])
-    conf = make_zenoh_config(bus)
+def run_router(listen: list[str], stop: threading.Event, peers: list[str] | None = None,
+               tls_dir: str = "") -> None:
+    """A Zenoh router inside this Python process (no zenohd on PyPI; ZENOH.md 0); with
+    tls_dir, over mutual TLS and enforcing the role ACL."""
+    bus = BusConfig(mode="router", listen=listen, connect=[], tls_dir=tls_dir)
+    conf = make_zenoh_config(bus, "router")
     if peers:
+        if tls_dir:
+            check_secure_endpoints(peers)
         conf.insert_json5("connect/endpoints", json.dumps(peers))
     session = zenoh.open(conf)
     try:
-        logger.info("router listening on %s", listen)
+        logger.info("router listening on %s%s", listen,
+                    " (mutual TLS, role ACL)" if tls_dir else "")
         stop.wait()
     finally:
         session.close()

@@ -410,7 +410,7 @@ def _enc_tile(t: Tile) -> dict:
 def _dec_tile(body: dict) -> Tile:
     what = "Tile"
     classes = _field(body, "classes", list, what)
-    if not all(isinstance(c, int) and 0 <= c < 256 for c in classes):
+    if not all(isinstance(c, int) and not isinstance(c, bool) and 0 <= c < 256 for c in classes):
         raise CodecError(f"{what}: classes must be uint8 integers")
     version = _field(body, "version", int, what)
     if version < 0:
@@ -457,10 +457,15 @@ def _enc_stats(s: Stats) -> dict:
 
 
 def _dec_stats(body: dict) -> Stats:
+    counters = _field(body, "counters", dict, "Stats")
+    for k, v in counters.items():
+        if not isinstance(k, str) or not isinstance(v, int | float | str) or (
+                isinstance(v, float) and not math.isfinite(v)):
+            raise CodecError("Stats: counters must map names to ints, finite floats or strings")
     return Stats(
         role=_field(body, "role", str, "Stats"),
         ident=_field(body, "ident", str, "Stats"),
-        counters=_field(body, "counters", dict, "Stats"),
+        counters=counters,
     )
 
 
@@ -499,7 +504,7 @@ def decode(data: bytes, expect: type | None = None):
         raise CodecError("expected an envelope map with exactly {v, type, body}")
     if env["v"] != VERSION:
         raise CodecError(f"unsupported version {env['v']!r}, expected {VERSION}")
-    if env["type"] not in _DECODERS:
+    if not isinstance(env["type"], str) or env["type"] not in _DECODERS:
         raise CodecError(
             f"unknown message type {env['type']!r}, expected one of {sorted(_DECODERS)}"
         )

@@ -37,6 +37,13 @@ class BusConfig:
     lease_ms: int = 3000  # failure detection of hung processes (ZENOH.md 1.6)
     shared_memory: bool = False  # off: avoids zenoh#2628 (SHM query/reply drops under load)
     query_timeout_s: float = 5.0
+    # mutual TLS (common/security.py, deploy/README.md): a folder with ca.pem and <role>.pem +
+    # <role>.key for the roles that run here (`roadmap certs`); endpoints must then be tls/...
+    # and a router enforces the role ACL. Empty: plain tcp, no access control
+    tls_dir: str = ""  # folder of ca.pem + <role>.pem/.key: mutual TLS and the role ACL
+    # largest message a link reassembles (transport/link/rx/max_message_size; zenoh's default
+    # is 1 GiB): what one sender can make a router or client buffer per message
+    max_message_bytes: int = 64 << 20  # largest message a link reassembles (0: zenoh's 1 GiB)
 
 
 @dataclass(frozen=True)
@@ -63,6 +70,10 @@ class CameraConfig:
 class GridConfig:
     shards: int = 2
     shard_map: dict[str, int] = field(default_factory=dict)  # "rx,ry" -> shard, overrides hashing
+    # how vehicles address the cloud (common/keys.py): "shard" = roadmap/ingest/s<owner> (the
+    # SQLite shards, needs grid.shards); "region" = roadmap/region/<rx>/<ry>/ingest (the
+    # PostgreSQL workers that hold regions by lease, services/merger/worker.py; no shard count)
+    routing: str = "shard"
 
 
 @dataclass(frozen=True)
@@ -89,7 +100,7 @@ class DemoConfig:
     vehicle_timeout_s: float = 600.0
     localizer_timeout_s: float = 600.0
     # localize the production drive a second time on the uncompressed map (the codec's share
-    # of the error, report.json localization.uncompressed_map)
+    # of the error, report.json localization.uncompressed_map); roadmap eval turns it off
     compare_raw_map: bool = True
     query_timeout_s: float = 5.0
 
@@ -104,26 +115,13 @@ class SegmentationConfig:
     kind: str = "truth"
     model_path: str = ""  # empty: common/models/roadseg.onnx shipped with the package
     intra_op_threads: int = 1
-    # rows above the rays that rise this many degrees above level (from the camera's
-    # calibration) show no road and are not run through the network (labelled none); < 0:
-    # every row is segmented; empty: the model's own (metadata `sky_margin_deg`), else
-    # common.segmentation.DEFAULT_SKY_MARGIN_DEG. 10: the top 48 of 360 rows of the default
-    # camera, 2.6 ms a frame less for an `s` network, its IoU moved by 0.0015 or less; a
-    # network whose coarsest stage reads the whole frame (m64) asks for every row
-    # (training/HISTORY.md)
-    sky_margin_deg: float | None = None  # empty: the model's own, else 10 degrees
-    # paint borders decided by the model's learned border classifier (metadata `border_net`,
-    # common.segmentation.BorderNet), if it has one, instead of its brightness rule
-    # (`refine`): on the benchmark's frames +0.0125 lane-line, +0.012 crosswalk, +0.017
-    # stop-line IoU, for 1.3 ms a frame more at p50 (2 ms at p95); false: the rule
-    border_net: bool = True
-    # what the network does with the mirror image of a frame: "average" runs it on the image
-    # and on its mirror and averages the two (twice the network's time: +0.011 mean lane-line
-    # IoU on the benchmark's frames); "alternate" runs it once a frame, on the image and on
-    # its mirror in turn (one run's cost; the car's mean errors 2-3 % above "average"'s over
-    # 36 Karlsruhe drives, p95 14.4-15.1 ms on the AMX Xeon); "off" once on the image (the car
-    # 6-9 % behind "average"); empty: the model's own (metadata `flip`, else `flip_average`)
-    # (training/HISTORY.md, 2026-11-29 and before)
+    # rows above the rays rising this far above level (degrees) show no road: labelled none,
+    # not segmented (10: the default camera's top 48 of 360 rows)
+    sky_margin_deg: float | None = None  # < 0: every row; empty: the model's own, else 10
+    # paint borders by the model's learned classifier (metadata `border_net`) if it has one
+    border_net: bool = True  # false: its brightness rule, 1-2 ms a frame faster, lower IoU
+    # the mirror image: "average" runs the network on image and mirror (twice the time),
+    # "alternate" on one of them a frame in turn, "off" on the image (costs: MODEL_CARD.md)
     flip: str = ""  # empty: the model's own; else off, average or alternate (FLIP_MODES)
 
 
@@ -133,9 +131,8 @@ class LocalizerConfig:
 
     map_codec: str = "contour"  # "contour" (compressed tiles) | "raw" (uncompressed, comparison)
     truth_seed: int = 1  # GroundTruthSegmenter corruption seed (another than the fleet's)
-    # "onnx": as vehicle.paint_min_margin, for ICP's points; 0: off (Karlsruhe 0.6 km drives,
-    # seeds 1 / 2: 1 and 2 logits did not localize better than 0)
-    paint_min_margin: float = 0.0  # logits a marking pixel's class must lead by to be a point
+    # "onnx": as vehicle.paint_min_margin, for ICP's points
+    paint_min_margin: float = 0.0  # logits a marking pixel's class must lead by (0: off)
     ipm_stride: int = 2  # take every n-th pixel row and column of the label image
     max_points: int = 700  # points per frame into ICP
     road_fraction: float = 0.25  # share of road-surface points among them
@@ -144,31 +141,25 @@ class LocalizerConfig:
     icp_gate_end_m: float = 0.4
     icp_huber_m: float = 0.1
     icp_refine_iterations: int = 6  # sub-cell refinement on the lines' likelihood field (0: off)
-    # lane-line likelihood field: the mask is widened by this square kernel (cells) before the
-    # blur, a plateau instead of a sharp ridge (services/localizer/map_cache.py; Karlsruhe demo
-    # drive, fleet map: 1 -> 5, x 0.075 -> 0.046 m, y 0.064 -> 0.027 m, yaw 0.152 -> 0.083 deg)
-    field_line_grow_cells: int = 5
-    # on a lane-lines-only match, hold the along-road position at the prediction with this
-    # sigma (0: off) once the filter knows it to within hold_below_m (services/localizer/
-    # localizer.py Localizer._held; Karlsruhe demo drive: x 0.046 -> 0.039 m, p90 0.093 -> 0.073)
-    hold_along_road_m: float = 0.02
-    hold_below_m: float = 0.1
-    # one pixel of label noise at range r is r^2 / (f h) along the viewing ray: far points'
-    # residuals along the ray weigh less (services/localizer/icp.py IpmNoise; 0: off; Karlsruhe
-    # demo drive: x 0.039 -> 0.029, y 0.033 -> 0.027 m, yaw 0.087 -> 0.076 deg)
-    ipm_sigma_px: float = 1.0
+    # the lane-line field is a plateau, not a ridge: its mask is widened first (TileCache)
+    field_line_grow_cells: int = 5  # square kernel, cells (1: not widened)
+    # a lane-lines-only match holds the along-road position at the prediction (Localizer._held)
+    hold_along_road_m: float = 0.02  # sigma of the hold, m (0: off)
+    hold_below_m: float = 0.1  # ... once the filter's along-road sigma is below this, m
+    # far points' residuals along the viewing ray weigh less: a pixel is r^2 / (f h) m there
+    ipm_sigma_px: float = 1.0  # label noise of the IPM points, pixels (0: off; IpmNoise)
     icp_cov_scale: float = 60.0  # single-frame ICP is over-confident (correlated points, vibration)
-    # (Karlsruhe drive, truth map: 30 -> x 0.078, y 0.114 m; 60 -> 0.070, 0.087; 120 -> 0.066,
-    # 0.093)
     gnss_inflate: float = 1.5  # consumer GNSS has a slowly varying bias: trust it less
     speed_sigma_rel: float = 0.005  # the odometry scale itself is estimated
-    # random walk of that scale (1/sqrt(s)): a wheel's scale error is all but constant; a faster
-    # walk lets ICP's along-road errors, which follow the dash pattern, swing the scale by +-2 %
-    # and the position saw-tooth with the dashes (Karlsruhe demo drive, fleet map: 1e-3 -> 3e-5,
-    # longitudinal 0.070 -> 0.052 m, x 0.065 -> 0.050, y 0.058 -> 0.042 m)
-    scale_walk_per_s: float = 3e-5
+    # a wheel's scale error is all but constant: a faster walk lets ICP's dash-periodic
+    # along-road errors swing the scale, and the position saw-tooth with the dashes
+    scale_walk_per_s: float = 3e-5  # random walk of that scale, 1/sqrt(s)
     yaw_rate_sigma_dps: float = 0.3
-    max_position_sigma_m: float = 1.0  # integrity: ok False above this
+    max_position_sigma_m: float = 1.0  # the filter trusts itself below this (re-init above)
+    # integrity: a pose is reported ok only while its protection level (integrity_k x the
+    # position sigma) lies within the alert limit: a lane-level error must never read as ok
+    alert_limit_m: float = 0.5
+    integrity_k: float = 3.0
     init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
     init_travel_m: float = 12.0  # metres of frames gathered before the coarse search
     init_frames: int = 30
@@ -178,17 +169,9 @@ class LocalizerConfig:
     cache_tiles: int = 25
     publish: bool = True  # publish roadmap/pose/<vehicle>
     recent_frames: int = 0  # also match a sample of the last n frames' points (odometry-chained)
-    # use the filter's prediction as a prior inside ICP: a frame that barely constrains the
-    # along-road position cannot walk along the lines (Karlsruhe drive: x 0.070 -> 0.062, y 0.087 ->
-    # 0.051 m; town 0.066 -> 0.053, 0.082 -> 0.067 m)
-    icp_prior: bool = True
-    # first correspondence gate while tracking (init: icp_gate_start_m; the gate also grows with
-    # the filter's position sigma): 1.5 m let a frame lock onto the next marking (Karlsruhe
-    # drive: x error 0.114 -> 0.070 m)
+    # init: icp_gate_start_m; grows with the filter's sigma; 1.5 m let a frame jump a dash
     icp_track_gate_m: float = 0.5  # first correspondence gate while tracking, m
-    # estimate the camera pitch per frame in ICP: 0.3 deg of vibration moves a point 12 m ahead
-    # by 0.5 m (Karlsruhe drive: longitudinal error 0.124 -> 0.085 m mean)
-    estimate_attitude: bool = True
+    # ICP estimates the camera's pitch per frame (0.3 deg moves a point 12 m ahead by 0.5 m)
     attitude_roll: bool = False  # roll too (else pitch only; roll hardly moves ground points)
     attitude_sigma_deg: float = 0.3  # prior of the per-frame attitude offset
 
@@ -202,27 +185,20 @@ class VehicleConfig:
     calib_window_s: float = 5.0  # odometry scale / gyro bias calibration window
     seal_every_frames: int = 100  # committed frames per patch sequence number
     ipm_stride: int = 1  # pixel subsampling of the IPM lookup
-    max_range_m: float = 11.0  # vote only ground points up to this far ahead (caps roi.length_m):
     # a 0.3 deg pitch vibration moves a ground point by range^2 / height x 0.005 (0.8 m at 15 m)
+    max_range_m: float = 11.0  # vote only ground points up to this far ahead (caps roi.length_m)
     # what a sealed patch goes up as: "cells" (packed per-cell votes, ~1 byte per cell seen) or
     # "sparse" (common/sparse.py: polygons + key poses + paint shares, ~1 % of those bytes)
-    patch_form: str = "cells"
-    # seal_every_frames of the sparse form: its bytes are mostly per patch (polygon seams, key
-    # poses, ids), 10.0 -> 6.6 KB per km driven on the demo drives at 300 (the map the same:
-    # the shard sums a traversal's patches in a tile before its ballot)
+    patch_form: str = "sparse"
+    # seal_every_frames of the sparse form, whose bytes are mostly per patch (seams, key poses)
     sparse_seal_every_frames: int = 300
     upload_batch: int = 16  # patches per IngestBatch
     upload_timeout_s: float = 5.0  # per ingest query
     backoff_min_s: float = 0.05
     backoff_max_s: float = 2.0
     truth_seed: int = 0  # GroundTruthSegmenter corruption seed (deterministic re-mapping)
-    # "onnx": marking pixels whose class leads the runner-up by less than this (logits) vote
-    # nothing (common.segmentation min_margin). 120 town frames: false lane-line pixels 10 -> 7
-    # % (2: 4 %), stop line 16 -> 10 % (6 %), keeping 92-99 % of the true ones (83-96 %); the
-    # Karlsruhe demo maps (--small, seeds 0 / 1 / 3): lane-line precision 0.85 / 0.98 / 0.98 ->
-    # 0.94 / 1.00 / 0.99 at recall 0.81 / 0.84 / 0.79 -> 0.80 / 0.81 / 0.78 (2: 0.79 / 0.78 /
-    # 0.73, and the car localized worse on one drive). 0: the plain argmax
-    paint_min_margin: float = 1.0  # logits a marking pixel's class must lead by to vote
+    # "onnx": unsure paint votes nothing: fewer false paint votes, a few true ones lost
+    paint_min_margin: float = 1.0  # logits a marking pixel's class must lead the next by (0: off)
 
 
 @dataclass(frozen=True)
@@ -242,10 +218,39 @@ class MergerConfig:
     sqlite_synchronous: str = "FULL"  # FULL: the ack survives power loss, not just kill -9
     ingest_queue: int = 256
     ingest_group: int = 32  # waiting ingest queries stored in one transaction (group commit)
-    # OpenCV threads per shard process (0: OpenCV's default, one per core): a shard is one
-    # core's work and more shards use more cores; N shards on N cores with N threads each
-    # oversubscribe them (bench_merger: 2 shards on 2 cores ~5 % faster with 1)
-    opencv_threads: int = 1
+    # hostile input (services/merger/throttle.py, deploy/README.md): an ingest payload larger
+    # than this is refused before it is decoded (a vehicle's 16-patch batch is well under 1 MB)
+    max_ingest_bytes: int = 8 << 20  # larger ingest payloads are refused before decoding
+    # token bucket per client (the vehicle id the query carries as attachment): a query costs
+    # one token per started ingest_token_bytes of payload; over its rate a vehicle is answered
+    # "throttled" at once (it backs off and retries) and the others' queries keep flowing. A
+    # vehicle seals a patch per tile about every 10 s of driving; the burst covers the backlog of
+    # a long outage (200 batches of 16 patches). <= 0: no throttle (services/merger/flood.py
+    # measures it: one flooding vehicle against three normal ones)
+    ingest_rate_per_s: float = 20.0  # tokens per second per vehicle (<= 0: no throttle)
+    ingest_burst: float = 200.0  # a vehicle's bucket size
+    ingest_token_bytes: int = 256 << 10  # a query costs a token per started this many bytes
+    ingest_clients: int = 4096  # buckets kept (least recently seen clients forgotten)
+    # a throttled query's ack is sent this late (at most ingest_queue of them held at once):
+    # a sender that retries without backing off still sends no faster than one per delay
+    throttle_delay_s: float = 1.0  # a throttled query is answered this late
+    # a shard is one core's work: N shards with N threads each oversubscribe N cores
+    opencv_threads: int = 1  # OpenCV threads per shard process (0: OpenCV's, one per core)
+    # durable store: "" = one SQLite file per shard (the embedded default); "postgresql://..."
+    # = one shared PostgreSQL database (services/merger/pgstore.py), run by `roadmap worker`
+    store: str = ""
+    lease_s: float = 4.0  # a worker's region lease lasts this long unless renewed (fencing epoch)
+    lease_renew_s: float = 0.5  # the worker's control tick: renew, claim, release regions
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    """Where the world's local ENU frame lies on the globe (DESIGN.md: Frames): the geodetic
+    origin that map exports (GeoJSON, Lanelet2 OSM) and the viewer convert metres about. Empty:
+    taken from the drive logs of a demo's output folder (their world's origin)."""
+
+    origin_lat_deg: float | None = None  # WGS84 latitude of x = y = 0
+    origin_lon_deg: float | None = None  # WGS84 longitude of x = y = 0
 
 
 @dataclass(frozen=True)
@@ -259,6 +264,7 @@ class RoadmapConfig:
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
     merger: MergerConfig = field(default_factory=MergerConfig)
+    world: WorldConfig = field(default_factory=WorldConfig)
 
 
 # -- loading -----------------------------------------------------------------------------------
@@ -389,6 +395,15 @@ def _validate(cfg: RoadmapConfig) -> None:
     if cfg.vehicle.patch_form not in PATCH_FORMS:
         raise ConfigError(f"vehicle.patch_form must be one of {', '.join(PATCH_FORMS)}, "
                           f"got {cfg.vehicle.patch_form!r}")
+    if cfg.grid.routing not in ("shard", "region"):
+        raise ConfigError(f"grid.routing must be shard or region, got {cfg.grid.routing!r}")
+    if cfg.merger.store and not cfg.merger.store.startswith(("postgresql://", "postgres://")):
+        raise ConfigError(f"merger.store must be empty (SQLite) or postgresql://..., got "
+                          f"{cfg.merger.store!r}")
+    if not 0 < cfg.merger.lease_renew_s < cfg.merger.lease_s:
+        raise ConfigError("merger.lease_renew_s must be in (0, merger.lease_s)")
+    if (cfg.world.origin_lat_deg is None) != (cfg.world.origin_lon_deg is None):
+        raise ConfigError("world.origin_lat_deg and world.origin_lon_deg go together: set both")
     bad = [v for v in cfg.grid.shard_map.values() if not 0 <= v < cfg.grid.shards]
     if bad:
         raise ConfigError(f"grid.shard_map names shards outside [0, {cfg.grid.shards}): {bad}")

@@ -22,8 +22,10 @@ precision/recall at 0.1 m tolerance >= 0.97 against the source raster (measured 
 merged noisy maps: services/bench/codec.py) at 7-8 KB per km of road.
 """
 
+import enum
 import lzma
 import zlib
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -460,36 +462,85 @@ def _bounded(v: int, what: str) -> int:
     return v
 
 
-def decode_tile(data: bytes) -> np.ndarray:
-    """Contour bytes (contour/2, or legacy contour/1) -> (512, 512) uint8 labels; any malformed
-    input raises CodecError."""
+def _walk(data: bytes):
+    """Contour bytes -> (format version, [(cls, components, lines)]) in ENCODED_CLASSES order:
+    each component a list of int32 rings (k, 1, 2) in cells (outer first, then its holes),
+    each line (vertices (k, 2) int32 in 1/LINE_UNIT cells, or cells in contour/1, width)."""
     version, payload = _decompress(data)
     structure, rings, line_pts = _parse(payload, version)
     plan = _rings_by_class(structure, len(rings), len(line_pts), version)
-    labels = np.zeros((TILE_CELLS, TILE_CELLS), dtype=np.uint8)
     rings, line_pts = rings.astype(np.int32), line_pts.astype(np.int32)
     shared = version == 1  # contour/1: one stream, in plan order
     i_ring = i_line = 0
+    out = []
     for cls, comps, lines in plan:
-        mask = np.zeros_like(labels)
+        polygons = []
         for sizes in comps:
             comp = []
             for n in sizes:
                 comp.append(rings[i_ring : i_ring + n].reshape(-1, 1, 2))
                 i_ring += n
-            _paint_component(mask, comp)
+            polygons.append(comp)
         if shared:
             i_line = i_ring
+        centre_lines = []
         for n, width in lines:
-            if shared:
-                _draw_legacy_line(mask, line_pts[i_line : i_line + n], width)
-            else:
-                _draw_exact_line(mask, line_pts[i_line : i_line + n], width)
+            centre_lines.append((line_pts[i_line : i_line + n], width))
             i_line += n
         if shared:
             i_ring = i_line
+        out.append((cls, polygons, centre_lines))
+    return version, out
+
+
+def decode_tile(data: bytes) -> np.ndarray:
+    """Contour bytes (contour/2, or legacy contour/1) -> (512, 512) uint8 labels; any malformed
+    input raises CodecError."""
+    version, plan = _walk(data)
+    draw_line = _draw_legacy_line if version == 1 else _draw_exact_line
+    labels = np.zeros((TILE_CELLS, TILE_CELLS), dtype=np.uint8)
+    for cls, polygons, centre_lines in plan:
+        mask = np.zeros_like(labels)
+        for comp in polygons:
+            _paint_component(mask, comp)
+        for verts, width in centre_lines:
+            draw_line(mask, verts, width)
         labels[mask > 0] = cls
     return labels
+
+
+class ShapeKind(enum.Enum):
+    POLYGON = "polygon"
+    LINE = "line"
+
+
+@dataclass(frozen=True)
+class TileShape:
+    """One shape of a contour tile in cell coordinates (x = col, y = row; a cell's centre at
+    integer coordinates): a filled polygon (rings: outer, then holes, through the centres of the
+    border cells) or a centre line with its width (rings: [vertices]; the cells within
+    width_cells / 2 of it are the paint)."""
+
+    cls: int
+    kind: ShapeKind
+    rings: list[np.ndarray]  # float64 (k, 2) each
+    width_cells: float = 0.0
+
+
+def decode_shapes(data: bytes) -> list[TileShape]:
+    """Contour bytes -> the codec's own vector shapes, in painting order (road first); what a
+    vector export of the map writes. Malformed input raises CodecError."""
+    version, plan = _walk(data)
+    unit = LINE_UNIT if version == 2 else 1
+    shapes = []
+    for cls, polygons, centre_lines in plan:
+        for comp in polygons:
+            rings = [ring.reshape(-1, 2).astype(np.float64) for ring in comp]
+            shapes.append(TileShape(cls, ShapeKind.POLYGON, rings))
+        for verts, width in centre_lines:
+            shapes.append(TileShape(cls, ShapeKind.LINE, [verts.astype(np.float64) / unit],
+                                    width / unit))
+    return shapes
 
 
 def _paint_component(mask: np.ndarray, rings: list[np.ndarray]) -> None:

@@ -27,3 +27,7 @@ class WorldError(RoadmapError):
 
 class TransportError(RoadmapError):
     """Zenoh could not be reached or answered with an error."""
+
+
+class ExportError(RoadmapError):
+    """A map or trajectory cannot be exported (no tiles, no origin, an unknown tile codec)."""

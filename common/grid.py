@@ -94,6 +94,29 @@ def owner_shard(
     return max(range(shards), key=lambda s: _weight(region, s))
 
 
+def owner_among(region: RegionId, members: list[str]) -> str | None:
+    """The member (worker name) that rendezvous hashing picks for a region among the live ones:
+    the PostgreSQL workers' region assignment (services/merger/worker.py). When a member joins,
+    only the regions it now wins move; when one leaves, only its regions move.
+
+    Weights: zlib.crc32 of the region and of the member, mixed by the splitmix64 finalizer. A
+    bare crc32 of "region/member" would not do: crc32 is affine, so for two names of equal
+    length the order of their weights barely depends on the region (every region would go to
+    the same one of "w0" and "w1")."""
+    if not members:
+        return None
+    key = zlib.crc32(f"{region[0]}/{region[1]}".encode()) << 32
+    return max(sorted(members), key=lambda m: _mix64(key | zlib.crc32(m.encode())))
+
+
+def _mix64(x: int) -> int:
+    """splitmix64's finalizer: a bijective, well-mixing map of 64-bit integers."""
+    mask = (1 << 64) - 1
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & mask
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & mask
+    return x ^ (x >> 31)
+
+
 def owner_of_tile(tile: TileId, shards: int, shard_map: Mapping[str, int] | None = None) -> int:
     return owner_shard(region_of_tile(tile), shards, shard_map)
 

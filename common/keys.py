@@ -5,7 +5,24 @@ Tile routing: a merger shard declares one queryable with complete=True on
 patch, and on start-up for every stored tile). A tile query therefore reaches only its owner,
 never every shard, and a `get` on a tile nobody holds answers with no reply at once. The routing
 state grows with the tiles a shard holds, not with the number of shards. Ingest goes to the shard
-by name (`roadmap/ingest/s<k>`): the vehicle computes the owner with common.grid.owner_of_tile."""
+by name (`roadmap/ingest/s<k>`): the vehicle computes the owner with common.grid.owner_of_tile.
+
+Region routing (grid.routing = "region": the PostgreSQL workers, services/merger/worker.py):
+ingest goes to `roadmap/region/<rx>/<ry>/ingest`, the region computed from the tile
+(common.grid.region_of_tile), so a vehicle needs no shard count. The worker holding a region's
+lease declares that key complete (one queryable per held region), and each worker declares the
+non-complete fallback `roadmap/region/*/*/ingest`: Zenoh's BEST_MATCHING routes a query to the
+complete holder when there is one (verified on 1.10.2) and only otherwise to every fallback,
+where the worker that rendezvous hashing over the live workers picks claims the unheld region
+and the others drop the query. Tiles keep their plain key `roadmap/tile/<tx>/<ty>` (the region
+is a pure function of it): the holder declares one complete queryable per tile it holds, and
+read-only tile servers (services/merger/tileserver.py) declare `roadmap/tile/*/*` complete and
+answer from the stored tiles; a get still reaches ONE queryable (the holder's exact key wins),
+never every worker, and the tiles stay readable while a region's writer is being replaced.
+
+Liveliness tokens `roadmap/alive/<role>/<id>`: merger (s<k>), vehicle and localizer (their
+vehicle id) and viewer; `roadmap status` reads them all with `alive_all()` and every stats
+queryable with `stats_all()`, no shard count needed."""
 
 from common.errors import CodecError
 
@@ -14,6 +31,26 @@ PREFIX = "roadmap"
 
 def ingest(shard: int) -> str:
     return f"{PREFIX}/ingest/s{shard}"
+
+
+def region_ingest(rx: int, ry: int) -> str:
+    return f"{PREFIX}/region/{rx}/{ry}/ingest"
+
+
+REGION_INGEST_ALL = f"{PREFIX}/region/*/*/ingest"
+
+
+def parse_region_ingest(key: str) -> tuple[int, int]:
+    parts = str(key).split("/")
+    if len(parts) != 5 or parts[:2] != [PREFIX, "region"] or parts[4] != "ingest":
+        raise CodecError(f"expected key {PREFIX}/region/<rx>/<ry>/ingest, got {key!r}")
+    try:
+        return int(parts[2]), int(parts[3])
+    except ValueError as exc:
+        raise CodecError(f"region key needs integer chunks, got {key!r}") from exc
+
+
+TILE_ALL = f"{PREFIX}/tile/*/*"
 
 
 def tile(tx: int, ty: int) -> str:
@@ -27,20 +64,35 @@ def tile_update(tx: int, ty: int) -> str:
 TILE_UPDATE_ALL = f"{PREFIX}/tile-update/*/*"
 
 
+def tile_selector(tx: int, ty: int, since: int | None = None) -> str:
+    """A tile query's selector: `roadmap/tile/<tx>/<ty>`, with `?since=<v>` (no sample when
+    the tile is not newer than v)."""
+    return tile(tx, ty) + ("" if since is None else f"?since={int(since)}")
+
+
 def pose(vehicle: str) -> str:
     return f"{PREFIX}/pose/{vehicle}"
+
+
+POSE_ALL = f"{PREFIX}/pose/*"
 
 
 def stats(role: str, ident: str) -> str:
     return f"{PREFIX}/stats/{role}/{ident}"
 
 
+def stats_all(role: str | None = None) -> str:
+    """Every stats queryable of a role (`roadmap/stats/<role>/*`), or of every role."""
+    return f"{PREFIX}/stats/{role}/*" if role else f"{PREFIX}/stats/*/*"
+
+
 def alive(role: str, ident: str) -> str:
     return f"{PREFIX}/alive/{role}/{ident}"
 
 
-def alive_all(role: str) -> str:
-    return f"{PREFIX}/alive/{role}/*"
+def alive_all(role: str | None = None) -> str:
+    """Every liveliness token of a role (`roadmap/alive/<role>/*`), or of every role."""
+    return f"{PREFIX}/alive/{role}/*" if role else f"{PREFIX}/alive/*/*"
 
 
 def _chunks(key: str, head: str, n: int) -> list[str]:
@@ -69,6 +121,11 @@ def parse_ingest(key: str) -> int:
 
 def parse_alive(key: str) -> tuple[str, str]:
     role, ident = _chunks(key, "alive", 2)
+    return role, ident
+
+
+def parse_stats(key: str) -> tuple[str, str]:
+    role, ident = _chunks(key, "stats", 2)
     return role, ident
 
 

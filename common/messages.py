@@ -73,6 +73,9 @@ def batch_of(patches: list) -> "IngestBatch | SparseBatch":
 
 ACCEPTED = "accepted"
 DUPLICATE = "duplicate"
+# IngestAck.error of a batch a shard refused for its sender's rate (services/merger/throttle.py):
+# nothing was applied; the vehicle retries it after a backoff
+THROTTLED = "throttled"
 
 
 @dataclass(frozen=True)

@@ -24,12 +24,20 @@ COMMANDS = {
     "world": "services.sim.cli:world_command",
     "vehicle": "services.vehicle.node:main",
     "merger": "services.merger.node:main",
+    "worker": "services.merger.worker:main",
+    "tileserver": "services.merger.tileserver:main",
     "localize": "services.localizer.node:main",
     "router": "services.router:command",
     "demo": "services.demo.run:demo_command",
     "up": "services.demo.run:up_command",
     "bench": "services.bench.runner:bench_command",
+    "eval": "services.eval.command:eval_command",
     "dump-config": "services.cli:dump_config",
+    "certs": "services.certs:command",
+    "export": "services.export.command:export_command",
+    "viewer": "services.viewer.server:viewer_command",
+    "status": "services.status:status_command",
+    "trajectory": "services.demo.trajectories:trajectory_command",
 }
 
 
@@ -81,6 +89,18 @@ def _merger(p: argparse.ArgumentParser) -> None:
     _common(p)
 
 
+def _worker(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--id", default=None, help="worker name, unique in the fleet "
+                   "(default HOST-PID)")
+    p.add_argument("--store", default=None, help="postgresql://... (default merger.store)")
+    _common(p)
+
+
+def _tileserver(p: argparse.ArgumentParser) -> None:
+    _worker(p)
+    p.add_argument("--threads", type=int, default=2, help="serve threads (one connection each)")
+
+
 def _localize(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log", required=True)
     p.add_argument("--out", default=None)
@@ -103,18 +123,33 @@ def _fleet(p: argparse.ArgumentParser) -> None:
     p.add_argument("--shards", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="out")
+    p.add_argument("--store", default=None, metavar="postgresql://URL",
+                   help="run --shards workers on this PostgreSQL database instead of SQLite "
+                        "shards (the demo empties its tables first)")
+    p.add_argument("--tile-servers", type=int, default=1,
+                   help="read-only tile servers beside the workers (with --store)")
+
+
+def _secure(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--secure", nargs="?", const="", default=None, metavar="DIR",
+                   help="mutual TLS + role ACL with the certificates in DIR (roadmap certs); "
+                        "without DIR, throwaway ones in OUT/certs")
 
 
 def _demo(p: argparse.ArgumentParser) -> None:
     _fleet(p)
+    _secure(p)
     p.add_argument("--scenario", choices=["default", "repaint"], default="default")
     p.add_argument("--chaos", action="store_true", help="kill and restart a shard and a vehicle")
     p.add_argument("--small", action="store_true", help="a short drive (for tests)")
+    p.add_argument("--viewer", type=int, default=None, metavar="PORT", nargs="?", const=8765,
+                   help="keep `roadmap viewer` up on PORT during the run")
     _common(p)
 
 
 def _up(p: argparse.ArgumentParser) -> None:
     _fleet(p)
+    _secure(p)
     p.add_argument("--listen", default=None, help="router endpoint (default tcp/127.0.0.1:7447)")
     _common(p)
 
@@ -125,17 +160,90 @@ def _bench(p: argparse.ArgumentParser) -> None:
     _common(p)
 
 
+def _eval(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--suite", choices=["default", "quick"], default="default")
+    p.add_argument("--world", action="append", default=None, help="a world instead of the "
+                   "suite's (repeatable): " + WORLD_HELP)
+    p.add_argument("--seeds", default=None, help="seeds instead of the suite's, e.g. 101-108")
+    p.add_argument("--workers", type=int, default=2, help="drives at once (default 2)")
+    p.add_argument("--vehicles", type=int, default=3, help="mapping vehicles per drive")
+    p.add_argument("--out", default="out/eval")
+    _common(p)
+
+
+def _certs(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", required=True, help="directory for ca.pem, <role>.pem, <role>.key")
+    p.add_argument("--host", action="append", default=[],
+                   help="another name of the router (repeatable; localhost, 127.0.0.1, ::1 and "
+                        "zenoh-router are always in)")
+    p.add_argument("--days", type=int, default=365, help="validity (default 365)")
+    p.add_argument("--reuse-ca", action="store_true",
+                   help="keep DIR's ca.pem + ca.key and issue new role certificates (rotation)")
+    p.add_argument("--log-level", default="INFO")
+
+
+def _export(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--format", choices=["geojson", "lanelet2"], required=True)
+    p.add_argument("--out", required=True, help="file to write (.geojson / .osm)")
+    p.add_argument("--from", dest="from_dir", metavar="DIR", default=None,
+                   help="a demo's output folder, shard stores (*.sqlite) or a tiles.npz "
+                        "(default: the running fleet, --connect)")
+    p.add_argument("--classes", default=None, metavar="NAME,...",
+                   help="classes to export (default: the markings lane_line, stop_line, "
+                        "crosswalk, ground_sign)")
+    p.add_argument("--road", action="store_true", help="also the road surface (polygons)")
+    _common(p)
+
+
+def _viewer(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--port", type=int, default=8765)
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on")
+    p.add_argument("--from", dest="from_dir", metavar="DIR", default=None,
+                   help="show a demo's output folder or shard stores instead of a live fleet")
+    p.add_argument("--stats-every", type=float, default=3.0, metavar="S",
+                   help="seconds between queries of the shards' stats and tile lists")
+    _common(p)
+
+
+def _status(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--from", dest="from_dir", metavar="DIR", default=None,
+                   help="a demo's output folder or shard stores instead of a live fleet")
+    p.add_argument("--interval", type=float, default=1.0, metavar="S",
+                   help="seconds between the two stats samples patches/s is taken over")
+    _common(p)
+
+
+def _trajectory(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--from", dest="from_dir", metavar="DIR", required=True,
+                   help="a demo's output folder")
+    p.add_argument("--format", choices=["tum", "kitti"], default="tum")
+    p.add_argument("--out", required=True, help="folder for estimate.* and truth.*")
+    p.add_argument("--localizer", default="localizer",
+                   help="the localizer run's folder in DIR (default localizer)")
+    _common(p)
+
+
 # subcommand -> (help, its options)
 PARSERS = {
     "sim": ("simulate drives and write drive logs", _sim),
     "world": ("world tools", _world),
     "vehicle": ("on-vehicle mapping of one drive log", _vehicle),
     "merger": ("a tile merger shard", _merger),
+    "worker": ("a tile merger worker holding regions by lease in PostgreSQL", _worker),
+    "tileserver": ("a read-only tile server over the PostgreSQL store", _tileserver),
     "localize": ("localize a production drive log against the map", _localize),
     "router": ("run a local Zenoh router", _router),
     "demo": ("run the whole fleet locally and write a report", _demo),
     "up": ("start the deployment topology as local processes", _up),
     "bench": ("benchmark every stage and write bench.json", _bench),
+    "eval": ("run the evaluation suite and write eval.json", _eval),
+    "certs": ("write a CA and a certificate + key per role", _certs),
+    "export": ("export the map as GeoJSON or Lanelet2 OSM (WGS84)", _export),
+    "viewer": ("a live web map of the fleet (local page, no internet)", _viewer),
+    "status": ("the fleet at a glance: shards, tiles, rates, who is alive", _status),
+    "trajectory": ("a demo's localizer trajectory and its ground truth as TUM or KITTI files "
+                   "(for evo)", _trajectory),
     "dump-config": ("print the effective configuration as TOML", _common),
 }
 

@@ -39,8 +39,9 @@ def test_deploy_advanced_config_lists_the_current_defaults():
 
 
 def test_demo_checks_the_configured_segmentation_model_before_driving(tmp_path):
-    """`segmentation.kind="onnx"` runs segmentation.model_path: a missing file stops the demo at once
-    (exit 1, one line), instead of the packaged model being checked and the fleet failing later."""
+    """`segmentation.kind="onnx"` runs segmentation.model_path: a missing file stops the demo at
+    once (exit 1, one line), instead of the packaged model being checked and the fleet failing
+    later."""
     res = roadmap("demo", "--small", "--out", str(tmp_path / "out"),
                   "--set", 'segmentation.kind="onnx"',
                   "--set", f'segmentation.model_path="{tmp_path / "missing.onnx"}"', timeout=60)

@@ -13,7 +13,7 @@ import numpy as np
 
 from common import camera as cameras
 from common.classes import NUM_CLASSES
-from common.config import FLIP_MODES
+from common.config import FLIP_MODES, SegmentationConfig
 from common.errors import ConfigError
 from common.segmentation.base import Segmenter
 from common.segmentation.refine import (
@@ -112,14 +112,14 @@ class OnnxSegmenter(Segmenter):
         std: tuple[float, float, float] | None = None,
         head_map: dict[str, dict[int, int]] | None = None,
         priority: list[str] | None = None,
-        intra_op_threads: int = 1,
+        intra_op_threads: int = SegmentationConfig.intra_op_threads,
         upsample: str = "nearest",
         refine: dict | None = None,
         border_net: dict | bool | None = None,
         min_margin: float = 0.0,
         sky_fraction: float = 0.0,
         camera: cameras.CameraModel | None = None,
-        sky_margin_deg: float | None = None,
+        sky_margin_deg: float | None = SegmentationConfig.sky_margin_deg,
         flip: str | None = None,
         name: str | None = None,
     ):

@@ -199,6 +199,10 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
     brightness rule. baseline_borders: how the baseline decides its paint
     borders: "model" (as the product), "rule" (its brightness rule) or "none". flip: None, as
     the model's metadata asks (as the product runs it), else one of FLIP_MODES."""
+    if not heldout_worlds():  # a result of nulls would read as a measurement
+        raise FileNotFoundError(
+            f"no held-out worlds under {SHARED} (Lanelet2 Karlsruhe, Argoverse 2 logs): put the "
+            "shared data at ../shared/data or set ROADMAP_SHARED_DATA")
     seg, gated, baseline = _segmenters(model_path, baseline_path, baseline_borders,
                                        sky_margin_deg=sky_margin_deg, border_net=border_net,
                                        flip=flip)

@@ -2,8 +2,8 @@
 
     python -m services.bench.vehicle --out DIR [--quick]   -> DIR/vehicle.json
 
-A seeded synthetic mapping drive (services/vehicle/synthetic.py: curving two-lane road, RTK GNSS with
-a 300 m outage, 0.5 % odometry scale error, 0.02 deg/s gyro bias), label frames rendered in
+A seeded synthetic mapping drive (services/vehicle/synthetic.py: curving two-lane road, RTK GNSS
+with a 300 m outage, 0.5 % odometry scale error, 0.02 deg/s gyro bias), label frames rendered in
 memory. The mapper (segmentation -> IPM -> pose graph -> voting) runs pinned to one core with the
 ground-truth segmenter; then on two cores with the ONNX model (our model when it exists, else
 TwinLiteNet from ../shared/data) on the colourised frames. Also reports the pose accuracy of the
@@ -24,10 +24,11 @@ import numpy as np
 from common.classes import colorize
 from common.config import SegmentationConfig
 from common.segmentation import DEFAULT_MODEL, configured_onnx, get_segmenter
+from services.eval.mapping import local_map_quality, pose_errors
 from services.sim.truth_segmenter import GroundTruthSegmenter
 from services.sim.worlds import shared_data_dir
 from services.vehicle.mapper import VehicleMapper
-from services.vehicle.node import StageTimer, map_log, pose_errors
+from services.vehicle.node import StageTimer, map_log
 from services.vehicle.synthetic import LabelRenderer, centreline, drive, mapping_camera, road_world
 
 logger = logging.getLogger("bench.vehicle")
@@ -130,7 +131,7 @@ def run(quick: bool = False) -> dict:
             "frames": len(log),
             "stream": f"{camera.width}x{camera.height}",
             "per_stage_ms_no_model": _stage_stats(timer),
-            **{k: v for k, v in pose_errors(mapper, log.streams["frame_pose_true"]).items()},
+            **pose_errors(mapper.trajectory(), log.streams["frame_pose_true"]),
             "outage_m": list(outage),
         },
     }
@@ -157,7 +158,7 @@ def run(quick: bool = False) -> dict:
     # 3. the pose graph on real data
     seg = SHARED / "comma2k19" / "segment40"
     if seg.is_dir():
-        from services.vehicle.comma2k19 import evaluate
+        from services.eval.comma2k19 import evaluate
 
         result["mapper"]["comma2k19"] = evaluate(seg)
 
@@ -177,7 +178,6 @@ def karlsruhe_traversal(osm: Path, max_km: float | None = None) -> dict:
     from services.sim.simulate import simulate_drives
     from services.sim.worlds import load_world
     from services.vehicle.node import build_mapper
-    from services.vehicle.quality import local_map_quality
 
     world = load_world(f"lanelet2:{osm}")
     with tempfile.TemporaryDirectory() as tmp:
@@ -199,7 +199,7 @@ def karlsruhe_traversal(osm: Path, max_km: float | None = None) -> dict:
             "frames": len(log),
             "gnss_ok_fraction": float(log.streams["gnss_ok"].mean()),
             "quality": local_map_quality(labels, x0, y0, world),
-            **pose_errors(mapper, log.streams["frame_pose_true"]),
+            **pose_errors(mapper.trajectory(), log.streams["frame_pose_true"]),
             "calibration": {
                 "odometry_scale": mapper.estimator.calibration.scale,
                 "gyro_bias_dps": float(np.degrees(mapper.estimator.calibration.gyro_bias_rps)),

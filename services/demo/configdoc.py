@@ -1,5 +1,6 @@
 """Writes deploy/config/advanced.toml: every setting with its default, commented out, and the
-comment its dataclass carries in common/config.py (plus the env variable that overrides it).
+comments its dataclass carries in common/config.py (the lines above the field and the one after
+it), plus the env variable that overrides it.
 
     python -m services.demo.configdoc > deploy/config/advanced.toml"""
 
@@ -13,13 +14,17 @@ from common.config import RoadmapConfig, _toml_value
 FIELD_RE = re.compile(r"^\s+(\w+)\s*:[^=]*=.*?(?:#\s*(.*))?$")
 
 
-def field_comments(cls) -> dict[str, str]:
-    """{field: trailing comment} from the dataclass's source lines."""
-    out = {}
+def field_comments(cls) -> dict[str, tuple[list[str], str]]:
+    """{field: (its comment lines above it, its trailing comment)} from the dataclass's source."""
+    out, above = {}, []
     for line in inspect.getsource(cls).splitlines():
+        if line.strip().startswith("#"):
+            above.append(line.strip()[1:].strip())
+            continue
         m = FIELD_RE.match(line)
-        if m and m.group(2):
-            out[m.group(1)] = m.group(2).strip()
+        if m:
+            out[m.group(1)] = (above, (m.group(2) or "").strip())
+        above = []
     return out
 
 
@@ -38,7 +43,8 @@ def render(cfg=None) -> str:
         comments = field_comments(type(section))
         for sf in dataclasses.fields(section):
             env = f"ROADMAP_{f.name.upper()}__{sf.name.upper()}"
-            note = comments.get(sf.name, "")
+            above, note = comments.get(sf.name, ([], ""))
+            lines.extend(f"# {c}" for c in above)
             lines.append(f"# {sf.name}: {note} (env {env})" if note else f"# {sf.name} (env {env})")
             lines.append(f"# {sf.name} = {_toml_value(getattr(section, sf.name))}")
         lines.append("")

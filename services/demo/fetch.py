@@ -120,7 +120,7 @@ def load_tiles(path: Path) -> dict:
 
 def _main(argv: list[str] | None = None) -> int:
     from common.bus import open_session
-    from common.config import BusConfig
+    from common.config import load_config
     from common.log import configure_logging
 
     p = argparse.ArgumentParser(prog="python -m services.demo.fetch")
@@ -131,13 +131,18 @@ def _main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
     configure_logging("WARNING")
-    with open_session(BusConfig(connect=[args.connect])) as session:
+    # the environment's bus settings (a secure fleet's ROADMAP_BUS__TLS_DIR) with this router;
+    # stats as a monitor, tiles as a localizer: the roles the ACL gives those keys
+    bus = load_config(sets=[f'bus.connect=["{args.connect}"]']).bus
+    with open_session(bus, "monitor") as session:
         time.sleep(0.2)  # let the router's routing table reach this new session
         stats = shard_stats(session, args.shards, args.timeout)
-        if args.what == "tiles":
+    if args.what == "tiles":
+        with open_session(bus, "localizer") as session:
+            time.sleep(0.2)
             tiles = list_tiles(session, stats, args.timeout)
             save_tiles(Path(args.out), [fetch_tile(session, t, args.timeout) for t in tiles])
-        sys.stdout.write(json.dumps(stats) + "\n")
+    sys.stdout.write(json.dumps(stats) + "\n")
     return 0
 
 

@@ -3,6 +3,8 @@
 Maps use the paper's palette (common.classes.colorize), north up; the trajectory is coloured by
 its position error; error histograms follow the paper's figure 9; the repaint strip its figure 8."""
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 
@@ -11,6 +13,23 @@ from common.world import render_png
 
 WHITE, GREY, BLACK = (255, 255, 255), (150, 150, 150), (0, 0, 0)
 FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def map_figures(raw: np.ndarray, decoded: np.ndarray, truth: np.ndarray, out: Path) -> None:
+    """OUT/map.png, map_truth.png and compression.png (merged vs decoded vs truth)."""
+    save_map(raw, out / "map.png")
+    save_map(truth, out / "map_truth.png")
+    side_by_side([("merged map (before compression)", raw),
+                  ("decoded from contours (after)", decoded),
+                  ("ground truth", truth)], out / "compression.png")
+
+
+def trajectory_figures(raw: np.ndarray, to_cells, track, out: Path) -> None:
+    """OUT/trajectory.png (estimates on the map, coloured by position error) and errors.png
+    (histograms of the scored estimates). track: services.demo.report.Track."""
+    trajectory_by_error(raw, to_cells, track.truth_xy, track.est_xy, track.errors["position_m"],
+                        out / "trajectory.png")
+    error_histograms({k: v[track.scored] for k, v in track.errors.items()}, out / "errors.png")
 
 
 def save_map(labels: np.ndarray, path) -> None:

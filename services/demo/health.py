@@ -23,7 +23,7 @@ def main(argv: list[str] | None = None) -> int:
     sets = [f'bus.connect=["{args.connect}"]'] if args.connect else []
     cfg = load_config(sets=sets)
     signal.alarm(int(args.timeout * 3) + 1)  # clients wait for the router forever: bound it
-    with open_session(cfg.bus) as session:
+    with open_session(cfg.bus, "monitor") as session:  # a secure bus: the monitor's certificate
         replies = session.liveliness().get(keys.alive(args.role, args.id), timeout=args.timeout)
         alive = any(r.ok is not None for r in replies)
     sys.stderr.write(f"{keys.alive(args.role, args.id)}: {'alive' if alive else 'not alive'}\n")

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from common.bus import free_tcp_port, wait_for_tcp
 from common.errors import RoadmapError, TransportError
+from services.demo.secure import fleet_scheme
 
 logger = logging.getLogger(__name__)
 
@@ -190,9 +191,10 @@ class Supervisor:
     # -- roles -------------------------------------------------------------------------------
 
     def start_router(self, endpoint: str | None = None, timeout_s: float = 20.0) -> str:
-        """A local Zenoh router on `endpoint` (default: a free loopback port); returns it."""
+        """A local Zenoh router on `endpoint` (default: a free loopback port, tls/ for a secure
+        fleet); returns it."""
         if endpoint is None:
-            endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+            endpoint = f"{fleet_scheme(self.env)}/127.0.0.1:{free_tcp_port()}"
         host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
         self.start("router", cli_argv("router", "--listen", endpoint))
         if not wait_for_tcp(host.strip("[]") if host not in ("[::]", "0.0.0.0") else "127.0.0.1",
@@ -222,6 +224,11 @@ class Supervisor:
     def start_localizer(self, name: str, log: Path, out: Path, extra: list[str] = ()) -> Proc:
         return self.start(name, cli_argv(
             "localize", "--log", str(log), "--out", str(out), *self._client_args(), *extra))
+
+    def start_viewer(self, port: int, extra: list[str] = ()) -> Proc:
+        """`roadmap viewer` on 127.0.0.1:port, a client of the fleet's router."""
+        return self.start("viewer", cli_argv("viewer", "--port", str(port),
+                                             *self._client_args(), *extra))
 
     def history(self) -> dict[str, list[dict]]:
         return {n: p.history for n, p in self.procs.items()}

@@ -17,6 +17,7 @@ import math
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
+from common.config import LocalizerConfig
 from common.geometry import wrap_angle
 
 CHI2_99 = {2: 9.21, 3: 11.34}
@@ -58,14 +59,14 @@ class PoseFilter:
     def __init__(
         self,
         *,
-        speed_sigma_rel: float = 0.005,
+        speed_sigma_rel: float = LocalizerConfig.speed_sigma_rel,
         speed_sigma_mps: float = 0.05,
-        yaw_rate_sigma_rps: float = math.radians(0.3),
+        yaw_rate_sigma_rps: float = math.radians(LocalizerConfig.yaw_rate_sigma_dps),
         gate_prob_chi2: dict | None = None,
-        max_position_sigma_m: float = 1.0,
+        max_position_sigma_m: float = LocalizerConfig.max_position_sigma_m,
         max_rejections: int = 20,
         scale_sigma0: float = 0.03,
-        scale_walk_per_s: float = 1e-3,
+        scale_walk_per_s: float = LocalizerConfig.scale_walk_per_s,
         gyro_bias_sigma0_rps: float = math.radians(0.1),
         gyro_bias_walk_rps: float = math.radians(0.002),
         camera_yaw_sigma0_rad: float = math.radians(0.3),

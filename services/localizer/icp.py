@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.config import LocalizerConfig
 from common.geometry import wrap_angle
 from common.grid import CELL_M
 
@@ -130,20 +131,20 @@ class Icp:
     def __init__(
         self,
         *,
-        iterations: int = 12,
-        gate_start_m: float = 1.5,
-        gate_end_m: float = 0.4,
-        huber_m: float = 0.1,
+        iterations: int = LocalizerConfig.icp_iterations,
+        gate_start_m: float = LocalizerConfig.icp_gate_start_m,
+        gate_end_m: float = LocalizerConfig.icp_gate_end_m,
+        huber_m: float = LocalizerConfig.icp_huber_m,
         yaw_lever_m: float = 8.0,
         degenerate_ratio: float = 1e-3,
-        cov_scale: float = 4.0,
+        cov_scale: float = LocalizerConfig.icp_cov_scale,
         point_sigma_m: float = 0.05,
         probe_m: float = 0.1,
-        attitude_sigma_rad: float = math.radians(0.6),
+        attitude_sigma_rad: float = math.radians(LocalizerConfig.attitude_sigma_deg),
         min_sigma_m: float = 0.01,
         min_sigma_yaw_rad: float = 0.001,
         min_points: int = 30,
-        refine_iterations: int = 6,
+        refine_iterations: int = LocalizerConfig.icp_refine_iterations,
         field_sigma: float = 0.1,
         field_min: float = 0.02,
         field_slots: tuple = (1, 2),  # lane line, stop line
@@ -199,6 +200,36 @@ class Icp:
             else (self.point_sigma_m**2 * self.cov_scale * np.linalg.inv(prior_cov))
         )
         pose_prior = pose.copy()
+        solved = self._nearest_iterations(pts0, jac, slots, pose, att, local_map, g0, scale,
+                                          prior, pose_prior)
+        if solved is None:
+            return None
+        pose, att, it = solved
+        refined = None
+        if self.refine_iterations and hasattr(local_map, "field"):
+            # lines only: a blurred area (road, an arrow, a crosswalk stripe cut off by the ROI)
+            # pulls the points along its visible edges inwards, a bias as large as the blur
+            # (measured: 0.58 m along a crosswalk); a line is seen across its whole width
+            thin = np.where(np.isin(slots, self.field_slots), slots, -1)
+            refined = self._refine(pts0, jac, thin, pose, att, local_map, scale, prior, pose_prior)
+        if refined is not None:
+            pose, att, H_field = refined
+        return self._result(
+            _moved(pts0, jac, att),
+            jac,
+            slots,
+            pose,
+            local_map,
+            scale,
+            it + 1,
+            att,
+            None if refined is None else H_field,
+        )
+
+    def _nearest_iterations(self, pts0, jac, slots, pose, att, local_map, g0, scale, prior,
+                            pose_prior):
+        """Gauss-Newton on nearest map cells with a shrinking gate: (pose, attitude, the last
+        iteration's index), or None when too few points stay inliers."""
         it = 0
         for it in range(self.iterations):
             gate = g0 + (self.gate_end_m - g0) * it / max(self.iterations - 1, 1)
@@ -222,26 +253,7 @@ class Icp:
             att = att + d_att
             if np.abs(step[:2]).max() < 1e-4 and abs(step[2]) < 1e-5 and it >= 2:
                 break
-        refined = None
-        if self.refine_iterations and hasattr(local_map, "field"):
-            # lines only: a blurred area (road, an arrow, a crosswalk stripe cut off by the ROI)
-            # pulls the points along its visible edges inwards, a bias as large as the blur
-            # (measured: 0.58 m along a crosswalk); a line is seen across its whole width
-            thin = np.where(np.isin(slots, self.field_slots), slots, -1)
-            refined = self._refine(pts0, jac, thin, pose, att, local_map, scale, prior, pose_prior)
-        if refined is not None:
-            pose, att, H_field = refined
-        return self._result(
-            _moved(pts0, jac, att),
-            jac,
-            slots,
-            pose,
-            local_map,
-            scale,
-            it + 1,
-            att,
-            None if refined is None else H_field,
-        )
+        return pose, att, it
 
     def _refine(self, pts0, jac, slots, pose, att, local_map, scale, prior, pose_prior):
         """Gauss-Newton on the likelihood field from the nearest-cell optimum: (pose, attitude,

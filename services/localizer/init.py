@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from common.classes import Cls
+from common.config import LocalizerConfig
 from common.grid import CELL_M
 
 CLASS_WEIGHT = {
@@ -51,7 +52,7 @@ class CoarseSearch:
     def __init__(
         self,
         *,
-        radius_m: float = 6.0,
+        radius_m: float = LocalizerConfig.init_radius_m,
         step_m: float = 0.5,
         yaw_step_deg: float = 2.0,
         yaw_window_deg: float = 25.0,

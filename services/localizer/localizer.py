@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from common.classes import Cls
+from common.config import LocalizerConfig
 from common.geometry import se2_between, se2_compose, transform_points_2d
 from services.localizer.ekf import PoseFilter
 from services.localizer.icp import Icp, IcpResult, IpmNoise
@@ -40,28 +41,29 @@ class Localizer:
         icp: Icp,
         ekf: PoseFilter,
         search: CoarseSearch,
-        max_points: int = 700,
-        road_fraction: float = 0.25,
-        gnss_inflate: float = 1.5,
+        max_points: int = LocalizerConfig.max_points,
+        road_fraction: float = LocalizerConfig.road_fraction,
+        gnss_inflate: float = LocalizerConfig.gnss_inflate,
         gnss_min_sigma_m: float = 1.0,
-        init_travel_m: float = 12.0,
-        init_frames: int = 30,
+        init_travel_m: float = LocalizerConfig.init_travel_m,
+        init_frames: int = LocalizerConfig.init_frames,
         init_min_overlap: float = 0.5,
         init_sigma_m: float = 0.3,
         init_min_frames: int = 8,
         init_every: int = 4,
         init_margin: float = 0.05,
-        reinit_bad_frames: int = 30,
-        recent_frames: int = 8,
+        reinit_bad_frames: int = LocalizerConfig.reinit_bad_frames,
+        recent_frames: int = LocalizerConfig.recent_frames,
         recent_points: int = 80,
-        use_prior: bool = False,
-        track_gate_m: float = 1.5,
+        track_gate_m: float = LocalizerConfig.icp_track_gate_m,
         calibration_rate: float = 0.0,
         reinit_gnss_rejections: int = 5,
-        hold_m: float = 0.0,
-        hold_below_m: float = 0.1,
+        hold_m: float = LocalizerConfig.hold_along_road_m,
+        hold_below_m: float = LocalizerConfig.hold_below_m,
         rival_travel_m: float = 200.0,
         rival_points: int = 4000,
+        alert_limit_m: float = LocalizerConfig.alert_limit_m,
+        integrity_k: float = LocalizerConfig.integrity_k,
         seed: int = 0,
     ):
         self.cache, self.icp, self.ekf, self.search = cache, icp, ekf, search
@@ -73,7 +75,6 @@ class Localizer:
         self.init_margin = init_margin
         self.reinit_bad_frames = reinit_bad_frames
         self.recent_frames, self.recent_points = recent_frames, recent_points
-        self.use_prior = use_prior
         self.track_gate_m = track_gate_m
         # camera attitude offset (pitch, roll) learnt from the per-frame ICP attitude: the
         # calibration error is constant, the vibration averages out
@@ -81,18 +82,24 @@ class Localizer:
         self.calibration_rate = calibration_rate
         self.reinit_gnss_rejections = reinit_gnss_rejections
         self.hold_m, self.hold_below_m = hold_m, hold_below_m
+        self.rival_travel_m, self.rival_points = rival_travel_m, rival_points
+        self.alert_limit_m, self.integrity_k = alert_limit_m, integrity_k
+        self._start(seed)
+
+    def _start(self, seed: int) -> None:
+        """The state of a drive before its first input."""
         # equally good poses left by an ambiguous initialization (solid or periodic dashed lines
         # along a straight road), each with the dead-reckoned odometry pose at which it held, so
         # it moves with the car; weighed on the submap until the map tells them apart
         self.rivals: list[tuple[np.ndarray, np.ndarray]] = []
-        self.rival_travel_m, self.rival_points = rival_travel_m, rival_points
         self.rivals_since_m = 0.0
-        self.recent: deque = deque(maxlen=max(recent_frames, 1))  # tracking: multi-frame matching
+        # tracking: multi-frame matching
+        self.recent: deque = deque(maxlen=max(self.recent_frames, 1))
         self._rng = np.random.default_rng(seed)
         self.t_ns: int | None = None
         self.odom = np.zeros(3)  # dead-reckoned pose in an arbitrary frame (for the init submap)
         self.travel_m = 0.0
-        self.submap: deque = deque(maxlen=init_frames)  # (odom pose, points_v, classes)
+        self.submap: deque = deque(maxlen=self.init_frames)  # (odom pose, points_v, classes)
         self.gnss: deque = deque(maxlen=50)  # (odom pose, xy, sigma)
         self.bad_frames = 0
         self.inits = 0
@@ -140,31 +147,32 @@ class Localizer:
         if jac is not None:  # the slowly learnt camera calibration offset (pitch, roll)
             pts = pts + jac @ self.calibration[: jac.shape[2]]
         all_pts, all_cls, all_jac = self._with_recent(pts, cls, jac)
-        prior = self.ekf.cov if self.use_prior else None
         gate = max(self.track_gate_m, 3.0 * self.ekf.position_sigma_m)
+        # the filter's prediction is ICP's prior: a frame that barely constrains the along-road
+        # position cannot walk along the lines
         result = self.icp.register(
             all_pts,
             class_slots(all_cls),
             self.ekf.pose,
             self.cache,
             all_jac,
-            prior,
+            prior_cov=self.ekf.cov,
             gate_start_m=gate,
         )
         self._remember(result, pts, cls, jac)
-        if self.use_prior:
-            accepted = result is not None and self.ekf.update_posterior(
-                result.pose, self._held(result)
-            )
-        else:
-            accepted = result is not None and self.ekf.update_pose(result.pose, result.cov)
+        accepted = result is not None and self.ekf.update_posterior(
+            result.pose, self._held(result)
+        )
         if accepted and jac is not None and len(result.attitude):
             self.calibration[: len(result.attitude)] += self.calibration_rate * result.attitude
         diag = self._frame_diag(result, accepted)
         self._watch_integrity(result, accepted)
         if self.rivals and self.ekf.initialized:
             diag["rivals"] = self._weigh_rivals()
-        ok = self.ekf.ok and not self.rivals  # an unresolved ambiguity is not a trusted pose
+        # an unresolved ambiguity is not a trusted pose, nor one whose protection level
+        # exceeds the alert limit
+        ok = (self.ekf.ok and not self.rivals
+              and self.integrity_k * self.ekf.position_sigma_m <= self.alert_limit_m)
         return Estimate(t_ns, self.ekf.vehicle_pose, self.ekf.cov, ok, diag)
 
     # -- steps ------------------------------------------------------------------------------
@@ -258,9 +266,8 @@ class Localizer:
 
         Through a featureless stretch the odometry (its scale learnt) keeps the along-road
         position better than the weak, slowly biased along-road pull of the frames around it;
-        without the hold those frames walk it by +-0.1 m over ~10 s (Karlsruhe 0.6 km drive,
-        truth map: x 0.043 -> 0.027 m, y 0.039 -> 0.027 m). The threshold keeps it off an
-        uncertain start (right after initialization the along-road sigma is ~0.4 m), where a
+        without the hold those frames walk it by +-0.1 m over ~10 s. The threshold keeps it off
+        an uncertain start (right after initialization the along-road sigma is ~0.4 m), where a
         hold would freeze a wrong along-road guess."""
         info = res.information
         if not (self.hold_m > 0 and res.degenerate):
@@ -467,8 +474,9 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         hold_m=lc.hold_along_road_m,
         hold_below_m=lc.hold_below_m,
         recent_frames=lc.recent_frames,
-        use_prior=lc.icp_prior,
         track_gate_m=lc.icp_track_gate_m,
+        alert_limit_m=lc.alert_limit_m,
+        integrity_k=lc.integrity_k,
         seed=seed,
     )
 

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from common.classes import Cls
+from common.config import LocalizerConfig
 from common.grid import CELL_M, TILE_CELLS, TileId, global_cells, split_global_cells
 
 logger = logging.getLogger(__name__)
@@ -24,7 +25,6 @@ logger = logging.getLogger(__name__)
 MATCH_CLASSES = (Cls.ROAD, Cls.LANE_LINE, Cls.STOP_LINE, Cls.CROSSWALK, Cls.GROUND_SIGN)
 NO_MATCH = -128  # int8 sentinel: no map cell of the class within reach
 MAX_OFFSET_CELLS = 127
-LINE_GROW_CELLS = 5  # default widening of the lane-line likelihood field (TileCache)
 
 
 @dataclass
@@ -67,18 +67,16 @@ class TileCache:
 
     def __init__(
         self,
-        capacity: int = 25,
+        capacity: int = LocalizerConfig.cache_tiles,
         margin_cells: int = 30,
         field_sigma_cells: float = 1.5,
-        line_grow_cells: int = LINE_GROW_CELLS,
+        line_grow_cells: int = LocalizerConfig.field_line_grow_cells,
     ):
         """line_grow_cells: the lane-line mask is dilated by this square kernel before it is
         blurred into the likelihood field (the nearest-cell offsets keep the exact mask). A
         0.15 m line blurred by 0.15 m is a sharp ridge the refinement overshoots and that
         rewards points on the line's crest only; widened to 0.55 m it is a plateau with soft
-        flanks, still centred on the line. Measured on the Karlsruhe demo drive, fleet map,
-        contour/2: grow 1 -> 5 -> 7: x 0.075 -> 0.046 -> 0.053 m, y 0.064 -> 0.027 -> 0.032 m, yaw
-        0.152 -> 0.083 -> 0.097 deg."""
+        flanks, still centred on the line. 1: not widened."""
         self.capacity = int(capacity)
         self.margin = int(margin_cells)
         self.field_sigma_cells = float(field_sigma_cells)
@@ -242,6 +240,11 @@ class TileCache:
             if lab is not None:
                 out[sel] = lab[rows, cols]
         return out
+
+
+def get_tile_cache(lc) -> TileCache:
+    """LocalizerConfig -> the car's TileCache (capacity, lane-line field widening)."""
+    return TileCache(capacity=lc.cache_tiles, line_grow_cells=lc.field_line_grow_cells)
 
 
 def _by_tile(gxy: np.ndarray):

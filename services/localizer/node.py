@@ -2,12 +2,14 @@
 
 Reads the drive log, segments each frame (ground-truth segmenter for simulated logs, or the ONNX
 model), lifts the labels to the ground (IPM), fetches the tiles around the car from their owner
-shards over Zenoh, runs the Localizer, publishes roadmap/pose/<vehicle>, and writes
-OUT/trajectory.tum, OUT/diagnostics.jsonl, OUT/localization.json and OUT/config.toml."""
+shards over Zenoh, runs the Localizer, publishes roadmap/pose/<vehicle> (holding the liveliness
+token roadmap/alive/localizer/<vehicle> meanwhile), and writes
+OUT/trajectory.tum, OUT/diagnostics.jsonl, OUT/tiles.npz, OUT/summary.json and OUT/config.toml
+(services/localizer/outputs.py). It never reads the true poses: the accuracy of its estimates is
+the evaluation harness's (services/eval/localization.py)."""
 
 import json
 import logging
-import math
 import time
 from pathlib import Path
 
@@ -18,12 +20,12 @@ from common.bus import open_session
 from common.config import to_toml
 from common.drivelog import DriveLog
 from common.errors import DriveLogError
-from common.geometry import quat_wxyz_from_yaw, transform_points_2d
 from common.messages import Pose
+from common.trajectory import write_tum
 from services.localizer.frames import FramePoints
 from services.localizer.localizer import get_localizer, replay
-from services.localizer.map_cache import TileCache
-from services.localizer.metrics import localization_metrics, summary_line
+from services.localizer.map_cache import get_tile_cache
+from services.localizer.outputs import TileLog, diag_row, write_summary
 from services.localizer.tiles import TileClient, tiles_needed
 
 logger = logging.getLogger(__name__)
@@ -35,81 +37,94 @@ def main(args, cfg) -> int:
     out = Path(args.out or Path(args.log) / "localize")
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.toml").write_text(to_toml(cfg))
-    with open_session(cfg.bus) as session:
-        report = localize_log(log, cfg, session, vehicle, out)
-    logger.info("%s: %s", vehicle, summary_line(report))
+    with open_session(cfg.bus, "localizer") as session:
+        token = session.liveliness().declare_token(keys.alive("localizer", vehicle))
+        try:
+            localize_log(log, cfg, session, vehicle, out)
+        finally:
+            token.undeclare()
     return 0
 
 
 def localize_log(log: DriveLog, cfg, session, vehicle: str, out: Path) -> dict:
-    """Localize every frame of a log; writes the outputs and returns the localization section."""
-    lc = cfg.localizer
-    cache = TileCache(capacity=lc.cache_tiles, line_grow_cells=lc.field_line_grow_cells)
-    client = TileClient(session, cache, codec_name=lc.map_codec, timeout_s=cfg.bus.query_timeout_s)
-    publisher = session.declare_publisher(keys.pose(vehicle)) if lc.publish else None
-    loc = get_localizer(lc, cache, camera=log.meta.camera)
-    frames = _FrameSource(log, cfg)
-    streams = log.streams
-    timings = {"segment_ms": [], "frame_ms": [], "fetch_ms": []}
-    on_map: list[bool] = []
-    diag_file = open(out / "diagnostics.jsonl", "w")
+    """Localize every frame of a log; writes the outputs and returns the summary."""
+    run = _LocalizerRun(log, cfg, session, vehicle, out)  # tile client, publisher, localizer
     try:
-
-        def frame_points(i):
-            t0 = time.perf_counter()
-            client.poll_updates()
-            client.ensure(_wanted_tiles(loc, streams, i, lc))
-            t1 = time.perf_counter()
-            pts = frames.points(i)
-            timings["fetch_ms"].append((t1 - t0) * 1e3)
-            timings["segment_ms"].append((time.perf_counter() - t1) * 1e3)
-            timings["_t"] = time.perf_counter()
-            return pts
-
-        def on_estimate(i, est):
-            timings["frame_ms"].append((time.perf_counter() - timings["_t"]) * 1e3)
-            on_map.append(map_covers_view(cache, streams["frame_pose_true"][i], cfg.roi))
-            if publisher is not None and np.all(np.isfinite(est.pose)):
-                publisher.put(
-                    codec.encode(
-                        Pose(
-                            vehicle,
-                            int(est.t_ns),
-                            *map(float, est.pose),
-                            np.asarray(est.cov, float),
-                            bool(est.ok),
-                        )
-                    )
-                )
-            row = _diag_row(i, est, streams)
-            row["on_map"] = on_map[-1]
-            diag_file.write(json.dumps(row, separators=(",", ":")) + "\n")
-
-        estimates = replay(loc, streams, frame_points, on_estimate)
+        estimates = replay(run.loc, log.streams, run.frame_points, run.on_estimate)
     finally:
-        diag_file.close()
-        client.close()
-        if publisher is not None:
-            publisher.undeclare()
-    poses = np.array([e.pose for e in estimates]).reshape(-1, 3)
-    write_tum(out / "trajectory.tum", streams["frame_t_ns"][: len(poses)], poses)
-    report = localization_metrics(
-        streams["frame_t_ns"][: len(poses)],
-        poses,
-        streams["frame_pose_true"][: len(poses)],
-        on_map=np.array(on_map, dtype=bool),
-    )
-    report.update(
-        map_codec=lc.map_codec,
-        segmenter=frames.segmenter_name,
-        inits=loc.inits,
-        tiles_fetched=client.fetched,
-        tile_bytes=client.bytes,
-        tile_updates=client.updates,
-        per_frame_ms=_percentiles(timings),
-    )
-    (out / "localization.json").write_text(json.dumps(report, indent=1))
-    return report
+        run.close()
+    summary = run.write_outputs(estimates)  # trajectory, received tiles, summary
+    ok = sum(bool(e.ok) for e in estimates)
+    logger.info("%s: %d frames, %d with an integrity-ok estimate, %d initializations, %d tiles "
+                "(%d bytes)", vehicle, len(estimates), ok, summary["inits"],
+                summary["tiles_fetched"], summary["tile_bytes"])
+    return summary
+
+
+class _LocalizerRun:
+    """The transport around one drive's Localizer: the tile client, the pose publisher, the frame
+    source, per-frame timings, and the outputs written as the frames come."""
+
+    def __init__(self, log: DriveLog, cfg, session, vehicle: str, out: Path):
+        lc = self.lc = cfg.localizer
+        self.vehicle, self.out, self.streams = vehicle, out, log.streams
+        self.cache = get_tile_cache(lc)
+        self.tiles = TileLog()  # the map as received: tiles.npz
+        self.client = TileClient(session, self.cache, codec_name=lc.map_codec,
+                                 timeout_s=cfg.bus.query_timeout_s, on_tile=self.tiles.add)
+        self.publisher = session.declare_publisher(keys.pose(vehicle)) if lc.publish else None
+        self.loc = get_localizer(lc, self.cache, camera=log.meta.camera)
+        self.frames = _FrameSource(log, cfg)
+        self.timings = {"segment_ms": [], "frame_ms": [], "fetch_ms": []}
+        self._t_points = 0.0
+        self.diag_file = open(out / "diagnostics.jsonl", "w")
+
+    def frame_points(self, i: int):
+        """The tiles around the car, then frame i's ground points (fetch and segment timed)."""
+        self.tiles.frame = i
+        t0 = time.perf_counter()
+        self.client.poll_updates()
+        self.client.ensure(_wanted_tiles(self.loc, self.streams, i, self.lc))
+        t1 = time.perf_counter()
+        pts = self.frames.points(i)
+        self.timings["fetch_ms"].append((t1 - t0) * 1e3)
+        self.timings["segment_ms"].append((time.perf_counter() - t1) * 1e3)
+        self._t_points = time.perf_counter()
+        return pts
+
+    def on_estimate(self, i: int, est) -> None:
+        """Frame i's estimate: its time since the points (frame_ms), published, one diagnostics
+        line."""
+        self.timings["frame_ms"].append((time.perf_counter() - self._t_points) * 1e3)
+        if self.publisher is not None and np.all(np.isfinite(est.pose)):
+            pose = Pose(self.vehicle, int(est.t_ns), *map(float, est.pose),
+                        np.asarray(est.cov, float), bool(est.ok))
+            self.publisher.put(codec.encode(pose))
+        self.diag_file.write(json.dumps(diag_row(i, est), separators=(",", ":")) + "\n")
+
+    def close(self) -> None:
+        self.diag_file.close()
+        self.client.close()
+        if self.publisher is not None:
+            self.publisher.undeclare()
+
+    def write_outputs(self, estimates: list) -> dict:
+        """trajectory.tum, tiles.npz and summary.json; returns the summary."""
+        poses = np.array([e.pose for e in estimates]).reshape(-1, 3)
+        write_tum(self.out / "trajectory.tum", self.streams["frame_t_ns"][: len(poses)], poses)
+        self.tiles.save(self.out / "tiles.npz")
+        summary = {
+            "map_codec": self.lc.map_codec,
+            "segmenter": self.frames.segmenter_name,
+            "inits": self.loc.inits,
+            "tiles_fetched": self.client.fetched,
+            "tile_bytes": self.client.bytes,
+            "tile_updates": self.client.updates,
+            "tiles_rejected": self.client.rejected,
+            "per_frame_ms": _percentiles(self.timings),
+        }
+        write_summary(self.out, summary)
+        return summary
 
 
 class _FrameSource:
@@ -121,7 +136,6 @@ class _FrameSource:
         self.log = log
         lc, roi = cfg.localizer, cfg.roi
         self.stride = lc.ipm_stride
-        self.estimate_attitude = lc.estimate_attitude
         self.roll = lc.attitude_roll
         self.ipm = FramePoints(
             log.meta.camera, x_min_m=roi.x_min_m, length_m=roi.length_m, width_m=roi.width_m
@@ -137,21 +151,7 @@ class _FrameSource:
             raise DriveLogError(f"{self.log.root}: frame {i} has neither an image nor labels")
         labels = self.segmenter.segment(image, truth)
         pts, cls, jac = self.ipm.points(labels, stride=self.stride)
-        if not self.estimate_attitude:
-            return pts, cls
         return pts, cls, (jac if self.roll else jac[:, :, :1])
-
-
-def map_covers_view(cache, true_pose, roi, min_fraction: float = 0.25) -> bool:
-    """Whether the map has road or paint under at least min_fraction of the ROI seen from the
-    true pose (a 1 m grid); False without a true pose. Evaluation only: the car does not know it."""
-    if not np.all(np.isfinite(true_pose)):
-        return False
-    xs = roi.x_min_m + 0.5 + np.arange(int(roi.length_m))
-    ys = -roi.width_m / 2 + 0.5 + np.arange(int(roi.width_m))
-    grid = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
-    world = transform_points_2d(np.asarray(true_pose, dtype=float), grid)
-    return bool(np.mean(cache.class_at(world) != 0) >= min_fraction)
 
 
 def _wanted_tiles(loc, streams, i: int, lc):
@@ -165,37 +165,6 @@ def _wanted_tiles(loc, streams, i: int, lc):
         return []
     x, y = streams["gnss_xy_m"][k]
     return tiles_needed(x, y, None, radius_m=lc.fetch_radius_m + 10.0, ahead_m=0.0)
-
-
-def _diag_row(i: int, est, streams) -> dict:
-    true = streams["frame_pose_true"][i]
-    row = {
-        "i": int(i),
-        "t_ns": int(est.t_ns),
-        "ok": bool(est.ok),
-        "pose": [round(float(v), 4) for v in est.pose] if np.all(np.isfinite(est.pose)) else None,
-        "sigma_xy_m": [round(float(math.sqrt(max(est.cov[k, k], 0.0))), 4) for k in (0, 1)],
-    }
-    if row["pose"] is not None and np.all(np.isfinite(true)):
-        dx, dy = est.pose[0] - true[0], est.pose[1] - true[1]
-        c, s = math.cos(true[2]), math.sin(true[2])
-        row["err_lon_m"] = round(c * dx + s * dy, 4)
-        row["err_lat_m"] = round(-s * dx + c * dy, 4)
-        row["err_yaw_deg"] = round(
-            math.degrees(math.remainder(est.pose[2] - true[2], 2 * math.pi)), 4
-        )
-    row.update(est.diag)
-    return row
-
-
-def write_tum(path: Path, t_ns: np.ndarray, poses: np.ndarray) -> None:
-    """TUM trajectory (`timestamp x y z qx qy qz qw`, seconds), frames with an estimate only."""
-    with open(path, "w") as f:
-        for t, (x, y, yaw) in zip(t_ns, poses, strict=True):
-            if not np.all(np.isfinite([x, y, yaw])):
-                continue
-            w, qx, qy, qz = quat_wxyz_from_yaw(float(yaw))
-            f.write(f"{int(t) / 1e9:.9f} {x:.4f} {y:.4f} 0.0 {qx:.8f} {qy:.8f} {qz:.8f} {w:.8f}\n")
 
 
 def _percentiles(timings: dict) -> dict:

@@ -3,7 +3,9 @@ the Tile messages ("contour/2", legacy "contour/1", or "raw/1"), and the Zenoh c
 and follows them.
 
 `tiles_needed` and `decode_tile_message` are pure; `TileClient` is the thin transport adapter and
-takes an open session (from common.bus.open_session)."""
+takes an open session (from common.bus.open_session). A tile that fails to decode, or that names
+another tile than the key it came on, is rejected (counted, logged) and the last good version
+stays in the cache: hostile or corrupt input never replaces the map."""
 
 import logging
 import math
@@ -12,6 +14,7 @@ import time
 import numpy as np
 
 from common import codec, keys
+from common.config import BusConfig, LocalizerConfig
 from common.contours import CODEC, LEGACY_CODECS, RAW_CODEC, decode_raw, decode_tile
 from common.errors import CodecError, TransportError
 from common.grid import TileId, tiles_around
@@ -51,11 +54,14 @@ class TileClient:
         session,
         cache,
         *,
-        codec_name: str = "contour",
-        timeout_s: float = 5.0,
+        codec_name: str = LocalizerConfig.map_codec,
+        timeout_s: float = BusConfig.query_timeout_s,
         retry_missing_s: float = 5.0,
         follow_updates: bool = True,
+        on_tile=None,
     ):
+        """on_tile(msg): called with every Tile message stored in the cache (fetched or an
+        update), e.g. to record the map the car received."""
         from common.bus import FifoChannel
 
         if codec_name not in ("contour", "raw"):
@@ -63,8 +69,9 @@ class TileClient:
         self.session, self.cache = session, cache
         self.params = "?codec=raw" if codec_name == "raw" else ""
         self.timeout_s, self.retry_missing_s = timeout_s, retry_missing_s
+        self.on_tile = on_tile
         self._missing: dict[TileId, float] = {}
-        self.fetched = self.missing = self.updates = 0
+        self.fetched = self.missing = self.updates = self.rejected = 0
         self.bytes = 0
         self.decode_ms: list[float] = []
         self._sub = (
@@ -97,7 +104,11 @@ class TileClient:
             if reply.ok is None:
                 logger.warning("tile %s: error reply %r", tile, reply.err.payload.to_bytes()[:200])
                 continue
-            self._store(reply.ok.payload.to_bytes())
+            try:
+                self._store(reply.ok.payload.to_bytes(), tile)
+            except CodecError as exc:
+                self._reject(tile, exc)
+                continue
             self.fetched += 1
             return True
         self._missing[tile] = time.monotonic()
@@ -120,14 +131,18 @@ class TileClient:
                 if self.params:  # raw map wanted: the update is contour coded, fetch raw instead
                     applied += self.fetch(tile)
                 else:
-                    applied += self._store(sample.payload.to_bytes())
+                    applied += self._store(sample.payload.to_bytes(), tile)
             except CodecError as exc:
-                logger.warning("tile update %s ignored: %s", tile, exc)
+                self._reject(tile, exc)
         self.updates += applied
         return applied
 
-    def _store(self, payload: bytes) -> bool:
+    def _store(self, payload: bytes, tile: TileId) -> bool:
+        """Decode a Tile that came on `tile`'s key and cache it if newer; CodecError (cache
+        untouched) when it does not decode or names another tile."""
         msg = codec.decode(payload, expect=Tile)
+        if tuple(msg.tile) != tuple(tile):
+            raise CodecError(f"a Tile for {tuple(msg.tile)} on the key of tile {tuple(tile)}")
         old = self.cache.version(msg.tile)
         if old is not None and msg.version <= old:
             return False
@@ -136,7 +151,15 @@ class TileClient:
         self.decode_ms.append((time.perf_counter() - t0) * 1e3)
         self.bytes += len(msg.data)
         self.cache.put(msg.tile, msg.version, labels)
+        if self.on_tile is not None:
+            self.on_tile(msg)
         return True
+
+    def _reject(self, tile: TileId, exc: CodecError) -> None:
+        self.rejected += 1
+        kept = self.cache.version(tile)
+        logger.warning("tile %s rejected (%s); %s", tile, exc,
+                       f"keeping version {kept}" if kept is not None else "none cached")
 
     def close(self) -> None:
         if self._sub is not None:

@@ -1,6 +1,9 @@
 """`roadmap merger --shard I --shards N [--store PATH]`: one tile merger shard on Zenoh.
 
-Ingest (`roadmap/ingest/s<I>`, complete): a bounded queue (merger.ingest_queue; full, it holds
+Ingest (`roadmap/ingest/s<I>`, complete): admitted on the RX thread before anything is
+decoded (services/merger/throttle.py: an oversized payload is answered with an error ack at
+once; a client over its rate gets its `throttled` ack merger.throttle_delay_s later, so a sender
+that ignores the backoff still waits), then a bounded queue (merger.ingest_queue; full, it holds
 the RX thread back: backpressure) drained by the main loop, which wakes as a query arrives and
 takes the queries waiting together (up to merger.ingest_group), stores their new patches in one
 transaction (group commit: one fsync), applies them and then replies each its IngestAck; a
@@ -12,6 +15,7 @@ quiet for `merger.debounce_s` (at the latest `merger.debounce_max_s` after a cha
 batches keep coming) and published on `roadmap/tile-update/<tx>/<ty>`. Liveliness token
 `roadmap/alive/merger/s<I>` once recovery is done. Runs until SIGTERM/SIGINT."""
 
+import collections
 import logging
 import queue
 import threading
@@ -21,14 +25,15 @@ import cv2
 
 from common import codec, keys
 from common.bus import Callback, ZError, open_session, stop_event
-from common.config import RoadmapConfig
+from common.config import MergerConfig, RoadmapConfig
 from common.contours import CODEC
 from common.errors import CodecError, ConfigError
 from common.grid import owner_of_tile
-from common.messages import ACCEPTED, IngestAck, Tile
+from common.messages import ACCEPTED, THROTTLED, IngestAck, Stats, Tile
 from services.merger.durable import DurableShard
 from services.merger.shard import MergerShard, TileCodecCache
 from services.merger.store import ShardStore
+from services.merger.throttle import IngestGuard, NoThrottle, get_ingest_guard
 
 logger = logging.getLogger(__name__)
 
@@ -59,9 +64,19 @@ def get_durable_shard(shard: int, shards: int, store_path: str, cfg: RoadmapConf
 
 
 class MergerNode:
-    def __init__(self, session, durable: DurableShard, *, shard: int, debounce_s: float,
-                 debounce_max_s: float = 2.0, ingest_queue: int = 256, ingest_group: int = 32):
+    def __init__(self, session, durable: DurableShard, *, shard: int,
+                 debounce_s: float = MergerConfig.debounce_s,
+                 debounce_max_s: float = MergerConfig.debounce_max_s,
+                 ingest_queue: int = MergerConfig.ingest_queue,
+                 ingest_group: int = MergerConfig.ingest_group,
+                 guard: IngestGuard | None = None,
+                 throttle_delay_s: float = MergerConfig.throttle_delay_s):
         self.session = session
+        self.guard = guard or IngestGuard(max_bytes=codec.MAX_MESSAGE_BYTES, throttle=NoThrottle())
+        self._guard_lock = threading.Lock()
+        self.throttle_delay_s = throttle_delay_s
+        self.held_max = max(1, int(ingest_queue))  # throttled queries held back, at most
+        self._held: collections.deque = collections.deque()  # (release time, query, reply)
         self.durable = durable
         self.shard = shard
         self.debounce_s = debounce_s
@@ -74,9 +89,9 @@ class MergerNode:
         self.ingest_queue: queue.Queue = queue.Queue(maxsize=max(1, int(ingest_queue)))
         self.tile_queryables = {}
         self.ingest = session.declare_queryable(
-            keys.ingest(shard), Callback(self.ingest_queue.put, indirect=False), complete=True)
+            keys.ingest(shard), Callback(self._admit, indirect=False), complete=True)
         self.stats_q = session.declare_queryable(keys.stats("merger", f"s{shard}"),
-                                                 self._enqueue_callback(), complete=True)
+                                                 self._enqueue_callback(stats=True), complete=True)
         for tile in durable.tiles():
             self._declare_tile(tile)
         self.token = session.liveliness().declare_token(keys.alive("merger", f"s{shard}"))
@@ -84,13 +99,40 @@ class MergerNode:
         self.flushing = threading.Thread(target=self._flush_loop, name="merger-flush", daemon=True)
         self._stop = threading.Event()
 
-    def _enqueue_callback(self):
-        return Callback(self.serve_queue.put, indirect=False)
+    def _enqueue_callback(self, stats: bool = False):
+        """Queries go to the serve thread tagged with the queryable that took them: a wildcard
+        (`roadmap/stats/**`) names no shard, so its key cannot tell."""
+        return Callback(lambda query: self.serve_queue.put((stats, query)), indirect=False)
 
     def _declare_tile(self, tile) -> None:
         if tile not in self.tile_queryables:
             self.tile_queryables[tile] = self.session.declare_queryable(
                 keys.tile(*tile), self._enqueue_callback(), complete=True)
+
+    def _admit(self, query) -> None:
+        """RX thread: answer an oversized query at once and hold a throttled one's answer for
+        throttle_delay_s (neither is decoded nor queued); queue the others for the main loop."""
+        size = sum(len(z) for z in (query.payload, query.attachment) if z is not None)
+        client = _client_id(query) if size <= self.guard.max_bytes else ""
+        with self._guard_lock:
+            refusal = self.guard.refusal(client, size, time.monotonic())
+        if refusal is None:
+            self.ingest_queue.put(query)
+            return
+        reply = codec.encode(IngestAck(error=refusal))
+        if (refusal.startswith(THROTTLED) and self.throttle_delay_s > 0
+                and len(self._held) < self.held_max):
+            self._held.append((time.monotonic() + self.throttle_delay_s, query, reply))
+            return
+        with query:
+            query.reply(query.key_expr, reply)
+
+    def _release_held(self, now_s: float) -> None:
+        """Answer the held throttled queries that are due (all of them at `now_s` = inf)."""
+        while self._held and self._held[0][0] <= now_s:
+            _, query, reply = self._held.popleft()
+            with query:
+                query.reply(query.key_expr, reply)
 
     # -- main loop: ingest + debounced flush ---------------------------------------------------
 
@@ -103,7 +145,9 @@ class MergerNode:
                 group = self._waiting_ingest(IDLE_WAIT_S)
                 if group:
                     self._handle_ingest(group)
+                self._release_held(time.monotonic())
         finally:
+            self._release_held(float("inf"))
             self._stop.set()
             self.flushing.join(timeout=30.0)
             self.serving.join(timeout=2.0)
@@ -188,20 +232,21 @@ class MergerNode:
     def _serve_loop(self) -> None:
         while not self._stop.is_set():
             try:
-                query = self.serve_queue.get(timeout=0.1)
+                stats, query = self.serve_queue.get(timeout=0.1)
             except queue.Empty:
                 continue
             with query:
                 try:
-                    self._serve(query)
+                    self._serve(query, stats)
                 except Exception as exc:  # a bad query must never end the serve thread
                     logger.warning("query %s failed: %s", query.selector, exc)
                     query.reply_err(str(exc).encode())
 
-    def _serve(self, query) -> None:
+    def _serve(self, query, stats: bool = False) -> None:
         key = str(query.key_expr)
-        if key == keys.stats("merger", f"s{self.shard}"):
-            query.reply(key, codec.encode(self.durable.stats()))  # stats flush first
+        if stats:  # its own key, also to roadmap/stats/** or roadmap/stats/merger/*
+            own = keys.stats("merger", f"s{self.shard}")
+            query.reply(own, codec.encode(self._stats()))  # stats flush first
             self._publish_changed()  # so every tile the stats list answers its queries now
             return
         tile = keys.parse_tile(key)
@@ -212,6 +257,21 @@ class MergerNode:
             query.reply_del(key)
         elif since is None or msg.version > since:
             query.reply(key, codec.encode(msg))
+
+    def _stats(self) -> Stats:
+        stats = self.durable.stats()
+        with self._guard_lock:
+            counters = {**stats.counters, **self.guard.counters}
+        return Stats(role=stats.role, ident=stats.ident, counters=counters)
+
+
+def _client_id(query) -> str:
+    """The sender's vehicle id (the query's attachment, as the vehicle's uploader sets it), ""
+    when there is none. Self-declared: deploy/README.md says what that does and does not stop."""
+    attachment = query.attachment
+    if attachment is None:
+        return ""
+    return attachment.to_bytes()[:codec.MAX_ID_CHARS].decode("utf-8", "replace")
 
 
 def _tile_selector(parameters) -> tuple[int | None, str]:
@@ -234,12 +294,14 @@ def main(args, cfg: RoadmapConfig) -> int:
     store_path = args.store or f"merger-s{args.shard}.sqlite"
     durable = get_durable_shard(args.shard, args.shards, store_path, cfg)
     try:
-        with open_session(cfg.bus) as session:
+        with open_session(cfg.bus, "merger") as session:
             node = MergerNode(session, durable, shard=args.shard,
                               debounce_s=cfg.merger.debounce_s,
                               debounce_max_s=cfg.merger.debounce_max_s,
                               ingest_queue=cfg.merger.ingest_queue,
-                              ingest_group=cfg.merger.ingest_group)
+                              ingest_group=cfg.merger.ingest_group,
+                              guard=get_ingest_guard(cfg.merger),
+                              throttle_delay_s=cfg.merger.throttle_delay_s)
             logger.info("merger s%d/%d serving", args.shard, args.shards)
             node.run(stop)
     finally:

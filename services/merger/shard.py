@@ -12,13 +12,14 @@ Evidence rule (DESIGN.md: Map updating), per cell:
      still votes once. Vehicles send votes only for labelled pixels (road and paint), not for
      ground they saw as nothing (class 0: islands, verges, hatched areas), so the shard
      reconstructs a traversal's footprint: its voted cells in the tile, closed (dilate, then
-     erode) with a FOOTPRINT_CELLS square (0.9 m). A cell inside that footprint without votes
-     of the traversal lay between cells it saw, so it was in view but showed no paint: it casts
-     a "no paint" ballot (UNSEEN_PAINT, no votes behind it). Without it, paint removed from
-     ground that is now nothing would never get a ballot against it and stay in the map.
-  2. Only the ballots of the WINDOW (3) most recent traversals that observed the cell count.
-     Traversals are ordered by their own time in the tile (the earliest t_first_ns of their
-     patches there), ties by traversal id: never by arrival.
+     erode) with a square of merger.footprint_cells (9: 0.9 m). A cell inside that footprint
+     without votes of the traversal lay between cells it saw, so it was in view but showed no
+     paint: it casts a "no paint" ballot (UNSEEN_PAINT, no votes behind it). Without it,
+     paint removed from ground that is now nothing would never get a ballot against it and
+     stay in the map.
+  2. Only the ballots of the merger.window_traversals (3) most recent traversals that
+     observed the cell count. Traversals are ordered by their own time in the tile (the
+     earliest t_first_ns of their patches there), ties by traversal id: never by arrival.
   3. The label: paint (its class with the most ballots in the window; ties go to the class
      whose ballots carry more votes, then to the lower class) wins when it has more ballots than
      the ground ballots (road, none and no-paint together; ties to more votes, then to the
@@ -26,7 +27,8 @@ Evidence rule (DESIGN.md: Map updating), per cell:
      split the vote against old paint. Otherwise the cell is road or none, whichever has more
      voted ballots (ties to more votes: road); no-paint ballots take no side there, as a gap
      in a traversal's votes (a car in front, sparse far pixels) is no evidence against road.
-     A label needs its ballots to carry at least MIN_VOTES votes, else the cell is unknown (0).
+     A label needs its ballots to carry at least merger.min_votes (2) votes, else the cell is
+     unknown (0).
 Consequences: after any number (50) of traversals of the old paint, new paint (or its removal:
 road, other paint or nothing) wins as soon as 2 of the last 3 traversals that saw the cell saw
 it: the map follows within 2 traversals that pass the cell, within 3 when one of them misses
@@ -41,11 +43,12 @@ independent of arrival order, crashes and replays.
 Retirement (bounded memory): a traversal none of whose observed cells is in its window any more
 (every one has `window` newer observations) can never count again, since later traversals only
 add observations. At a flush such a traversal is dropped from memory (its patches stay in the
-store, its patch ids in the dedupe set) once it is also RETIRE_AFTER_S older than the tile's
-window-th newest traversal: that margin keeps the rule exact in practice, as a late patch could
-still make a traversal newer (lower its t_first_ns) or add to a retired one. Such a late patch
-of a retired traversal starts it afresh from its new pieces (counted as "revived"). So a tile's
-memory is that of the traversals still in some cell's window, not of every traversal ever.
+store, its patch ids in the dedupe set) once it is also merger.retire_after_s (< 0: never)
+older than the tile's window-th newest traversal: that margin keeps the rule exact in
+practice, as a late patch could still make a traversal newer (lower its t_first_ns) or add to a
+retired one. Such a late patch of a retired traversal starts it afresh from its new pieces
+(counted as "revived"). So a tile's memory is that of the traversals still in some cell's
+window, not of every traversal ever.
 """
 
 import hashlib
@@ -56,15 +59,12 @@ import cv2
 import numpy as np
 
 from common.classes import NUM_CLASSES
+from common.config import MergerConfig
 from common.contours import CODEC, encode_tile
 from common.errors import ConfigError, TileError
 from common.grid import CELLS_PER_TILE, TILE_CELLS
 from common.messages import ACCEPTED, DUPLICATE, GridPatch
 
-WINDOW_TRAVERSALS = 3
-RETIRE_AFTER_S = 3600.0  # retirement margin (module docstring); < 0: never retire
-MIN_VOTES = 2
-FOOTPRINT_CELLS = 9  # closing square of a traversal's voted cells (module docstring, 1.)
 VOTE_CAP = 1 << 24  # per traversal and cell: window sums (window < 256) stay below 2^32
 BALLOT = np.uint64(1 << 32)
 UNSEEN_PAINT = NUM_CLASSES  # ballot slot of "in the footprint, no votes": no paint seen here
@@ -186,12 +186,12 @@ class MergerShard:
         self,
         *,
         owns: Callable[[TileId], bool] = lambda tile: True,
-        window_traversals: int = WINDOW_TRAVERSALS,
-        min_votes: int = MIN_VOTES,
-        footprint_cells: int = FOOTPRINT_CELLS,
-        retire_after_s: float = RETIRE_AFTER_S,
-        max_batch_patches: int = 4096,
-        max_batch_cells: int = 4_000_000,
+        window_traversals: int = MergerConfig.window_traversals,
+        min_votes: int = MergerConfig.min_votes,
+        footprint_cells: int = MergerConfig.footprint_cells,
+        retire_after_s: float = MergerConfig.retire_after_s,
+        max_batch_patches: int = MergerConfig.max_batch_patches,
+        max_batch_cells: int = MergerConfig.max_batch_cells,
     ):
         self.owns = owns
         if not 1 <= window_traversals < 256 or min_votes < 1 or not 1 <= footprint_cells <= 63:
@@ -349,7 +349,7 @@ def _check_patch(p: GridPatch) -> None:
 
 def tile_labels(
     traversals: list[tuple[str, _Traversal]], *, window: int, min_votes: int,
-    footprint_cells: int = FOOTPRINT_CELLS, idle: list[str] | None = None,
+    footprint_cells: int = MergerConfig.footprint_cells, idle: list[str] | None = None,
 ) -> np.ndarray:
     """The evidence rule (module docstring) for one tile -> (512, 512) uint8 labels.
 

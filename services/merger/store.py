@@ -18,6 +18,7 @@ import numpy as np
 
 from common.classes import NUM_CLASSES
 from common.codec import pack_cells_votes, unpack_cells_votes
+from common.config import MergerConfig
 from common.messages import GridPatch, SparsePatch
 from common.sparse import FORM as SPARSE_FORM
 from common.sparse import expand_patch
@@ -44,7 +45,8 @@ CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 class ShardStore:
     """One SQLite file; not shared between threads without the caller's lock."""
 
-    def __init__(self, path: str | Path, *, synchronous: str = "FULL"):
+    def __init__(self, path: str | Path, *,
+                 synchronous: str = MergerConfig.sqlite_synchronous):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.db = sqlite3.connect(str(self.path), isolation_level=None, check_same_thread=False)
@@ -57,8 +59,24 @@ class ShardStore:
         if "form" not in columns:  # ... and from before sparse patches
             self.db.execute("ALTER TABLE patches ADD COLUMN form TEXT")
 
+    @classmethod
+    def read_only(cls, path: str | Path) -> "ShardStore":
+        """An existing store opened for reading only (export, status, viewer of a demo's
+        output): nothing written, a shard running on it undisturbed."""
+        store = cls.__new__(cls)
+        store.path = Path(path)
+        if not store.path.is_file():
+            raise FileNotFoundError(f"no shard store at {store.path}")
+        store.db = sqlite3.connect(f"file:{store.path}?mode=ro", uri=True, isolation_level=None,
+                                   check_same_thread=False)
+        return store
+
     def close(self) -> None:
         self.db.close()
+
+    def meta(self, key: str) -> str | None:
+        row = self.db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return None if row is None else row[0]
 
     def check_meta(self, key: str, value: str) -> str | None:
         """Record a setting on first use; return the stored value (differs on a mismatch)."""
@@ -72,7 +90,7 @@ class ShardStore:
         """All of them in one committed transaction, or none (raises sqlite3.Error)."""
         rows = [
             (p.patch_id, int(p.tile[0]), int(p.tile[1]), p.vehicle, p.traversal,
-             int(p.t_first_ns), int(p.t_last_ns), *_stored_form(p))
+             int(p.t_first_ns), int(p.t_last_ns), *stored_form(p))
             for p in patches
         ]
         with self._transaction():
@@ -114,7 +132,7 @@ class ShardStore:
         return _Transaction(self.db)
 
 
-def _stored_form(p: GridPatch) -> tuple[bytes, bytes, int | None, str | None]:
+def stored_form(p: GridPatch) -> tuple[bytes, bytes, int | None, str | None]:
     """(cells, votes, packed_n, form) of a patch's row: a sparse patch's payload as it came,
     else the packed cells + votes (as they came, or packed here)."""
     if p.sparse is not None:

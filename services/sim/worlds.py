@@ -20,8 +20,15 @@ KARLSRUHE = Path("lanelet2-karlsruhe") / "mapping_example.osm"
 
 
 def shared_data_dir() -> Path:
+    """$ROADMAP_SHARED_DATA, else ../shared/data beside the checkout the code runs from, else
+    (an installed package) ../shared/data beside the working directory."""
     env = os.environ.get("ROADMAP_SHARED_DATA")
-    return Path(env) if env else Path(__file__).resolve().parents[2].parent / "shared" / "data"
+    if env:
+        return Path(env)
+    beside_checkout = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+    if beside_checkout.is_dir():
+        return beside_checkout
+    return Path.cwd().resolve().parent / "shared" / "data"
 
 
 def default_spec() -> str:

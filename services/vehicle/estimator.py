@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.config import VehicleConfig
 from common.geometry import se2_compose, wrap_angle
 from services.vehicle.pose_graph import PoseGraph
 
@@ -127,9 +128,9 @@ class PoseEstimator:
     init_baseline_m: GNSS travel needed to fix the initial heading; calibrate: estimate scale/bias
     (only from windows covered by fixes with sigma <= calib_max_gnss_sigma_m, i.e. RTK)."""
 
-    settle_lag_s: float = 1.0
-    max_wait_s: float = 120.0
-    calib_window_s: float = 5.0
+    settle_lag_s: float = VehicleConfig.settle_lag_s
+    max_wait_s: float = VehicleConfig.max_wait_s
+    calib_window_s: float = VehicleConfig.calib_window_s
     init_baseline_m: float = 5.0
     calibrate: bool = True
     gnss_sigma_floor_m: float = 0.01

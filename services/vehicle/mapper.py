@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.camera import CameraModel, build_ipm_lookup
+from common.config import VehicleConfig
 from common.geometry import transform_points_2d
 from common.messages import GridPatch
 from common.segmentation import Segmenter
@@ -48,8 +49,8 @@ class VehicleMapper:
         roi_length_m: float,
         roi_width_m: float,
         estimator: PoseEstimator | None = None,
-        seal_every_frames: int = 100,
-        ipm_stride: int = 1,
+        seal_every_frames: int = VehicleConfig.seal_every_frames,
+        ipm_stride: int = VehicleConfig.ipm_stride,
         patch_form=None,
     ):
         self.vehicle, self.traversal = vehicle, traversal
@@ -127,6 +128,18 @@ class VehicleMapper:
         whole.merge(self.grid)
         whole.merge(self.delta)
         return raster_window(whole, margin_m)
+
+    def trajectory(self) -> dict[str, np.ndarray]:
+        """The committed frames in order: t_ns (N,), pose (N, 3) the optimized (x, y, yaw) they
+        were voted with, gnss_covered (N,), odom_delta (N, 3) the raw odometry since the
+        previous frame (uncalibrated wheel speed and gyro; zeros for the first frame)."""
+        est, n = self.estimator, len(self.poses)
+        return {
+            "t_ns": np.array([est.node_time_ns(i) for i in range(n)], np.int64),
+            "pose": np.array([self.poses[i] for i in range(n)], np.float64).reshape(-1, 3),
+            "gnss_covered": np.array([est.covered(i) for i in range(n)], bool),
+            "odom_delta": est.raw_deltas()[:n].reshape(-1, 3),
+        }
 
     @property
     def frames_committed(self) -> int:

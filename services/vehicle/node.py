@@ -2,10 +2,13 @@
 
 Thin shell around VehicleMapper: replays the log's streams in time order, times every stage,
 writes sealed patches to the on-disk outbox, and an uploader thread sends them to
-`roadmap/ingest/s<owner>` (waiting while the owner shard is not alive) until every patch is acked.
-Writes STATE/summary.json, STATE/local_map.npz and STATE/config.toml."""
+`roadmap/ingest/s<owner>` (waiting while the owner shard is not alive) until every patch is acked;
+a batch the shard refused as `throttled` is retried after a backoff. Holds the liveliness token
+`roadmap/alive/vehicle/<id>` while it runs.
+Writes STATE/summary.json (counters), STATE/poses.npz and STATE/trajectory.tum (the committed
+pose-graph poses), STATE/local_map.npz and STATE/config.toml (services/vehicle/outputs.py); the
+accuracy of poses and map is the evaluation harness's (services/eval/mapping.py)."""
 
-import json
 import logging
 import math
 import threading
@@ -19,12 +22,13 @@ from common import codec, keys
 from common.bus import SampleKind, open_session, stop_event
 from common.config import RoadmapConfig, to_toml
 from common.drivelog import DriveLog
-from common.grid import owner_of_tile
-from common.messages import GridPatch, IngestAck, batch_of
+from common.grid import owner_of_tile, region_of_tile
+from common.messages import THROTTLED, GridPatch, IngestAck, batch_of
 from common.segmentation import segmenter_for
-from services.vehicle.estimator import PoseEstimator, dead_reckon
+from services.vehicle.estimator import PoseEstimator
 from services.vehicle.mapper import VehicleMapper
 from services.vehicle.outbox import Outbox
+from services.vehicle.outputs import write_local_map, write_poses, write_summary
 from services.vehicle.patchform import get_patch_form
 
 logger = logging.getLogger(__name__)
@@ -128,9 +132,12 @@ def map_log(
 class Uploader(threading.Thread):
     """Sends outbox patches to their owner shards until acked; waits while a shard is not alive."""
 
-    def __init__(self, session, outbox: Outbox, cfg: RoadmapConfig, stop: threading.Event):
+    def __init__(self, session, outbox: Outbox, cfg: RoadmapConfig, stop: threading.Event,
+                 vehicle: str = ""):
         super().__init__(name="uploader", daemon=True)
         self.session, self.outbox, self.cfg, self.stop = session, outbox, cfg, stop
+        self.vehicle = vehicle  # sent as each query's attachment: the shard's throttle key
+        self.throttled = 0  # batches a shard refused for this vehicle's rate (then retried)
         self.mapping_done = threading.Event()
         self.wake = threading.Event()
         # held while a seal's patches go into the outbox, so a send round takes them all or
@@ -170,41 +177,52 @@ class Uploader(threading.Thread):
             backoff = min(backoff * 2, v.backoff_max_s) if pending else backoff
 
     def _send_round(self, pending: list[str]) -> bool:
-        by_shard = defaultdict(list)  # (shard, form): one batch holds patches of one form
+        by_key = defaultdict(list)  # (key, owner, form): one batch holds patches of one form
         for pid in pending:
             patch = self._cache.get(pid) or self._cache.setdefault(pid, self.outbox.load(pid))
-            shard = owner_of_tile(patch.tile, self.cfg.grid.shards, self.cfg.grid.shard_map)
-            by_shard[shard, type(patch)].append(patch)
+            by_key[(*self._destination(patch), type(patch))].append(patch)
         progressed = False
-        for (shard, _), patches in by_shard.items():
-            if f"s{shard}" not in self.alive:
+        for (key, ident, _), patches in by_key.items():
+            if ident not in self.alive and not (ident is None and self.alive):
                 continue  # wait for the owner (liveliness) rather than drop
             for k in range(0, len(patches), self.cfg.vehicle.upload_batch):
                 if self.stop.is_set() or not self._send(
-                    shard, patches[k : k + self.cfg.vehicle.upload_batch]
+                    key, patches[k : k + self.cfg.vehicle.upload_batch]
                 ):
                     break
                 progressed = True
         return progressed
 
-    def _send(self, shard: int, patches: list[GridPatch]) -> bool:
+    def _destination(self, patch: GridPatch) -> tuple[str, str | None]:
+        """(ingest key, the merger that must be alive): the owner shard's key, or with
+        grid.routing = "region" the region's key (any live worker will do: the holder answers,
+        or one claims the region; common/keys.py)."""
+        if self.cfg.grid.routing == "region":
+            return keys.region_ingest(*region_of_tile(tuple(patch.tile))), None
+        shard = owner_of_tile(patch.tile, self.cfg.grid.shards, self.cfg.grid.shard_map)
+        return keys.ingest(shard), f"s{shard}"
+
+    def _send(self, key: str, patches: list) -> bool:
         payload = codec.encode(batch_of(patches))
         self.sent += len(patches)
         self.bytes_sent += len(payload)
         self.sent_ids.update(p.patch_id for p in patches)
-        replies = self.session.get(
-            keys.ingest(shard), payload=payload, timeout=self.cfg.vehicle.upload_timeout_s
-        )
+        replies = self.session.get(key, payload=payload, attachment=self.vehicle.encode(),
+                                   timeout=self.cfg.vehicle.upload_timeout_s)
         for reply in replies:
             if reply.ok is None:
                 continue
             try:
                 ack = codec.decode(reply.ok.payload.to_bytes(), expect=IngestAck)
             except Exception as exc:  # noqa: BLE001 - a bad ack is retried like no ack
-                logger.warning("shard s%d: undecodable ack: %s", shard, exc)
+                logger.warning("%s: undecodable ack: %s", key, exc)
                 continue
+            if ack.error and ack.error.startswith(THROTTLED):
+                self.throttled += 1  # not an error: retried after the backoff
+                logger.debug("%s: %s", key, ack.error)
+                return False
             if ack.error:
-                logger.warning("shard s%d rejected a batch: %s", shard, ack.error)
+                logger.warning("%s rejected a batch: %s", key, ack.error)
                 break
             ids = {p.patch_id for p in patches}
             results = {pid: st for pid, st in ack.results.items() if pid in ids}
@@ -219,145 +237,105 @@ class Uploader(threading.Thread):
         self._live.undeclare()
 
 
-# -- summary -----------------------------------------------------------------------------------
-
-
-def _stats(err: np.ndarray):
-    err = err[np.isfinite(err)]
-    if not len(err):
-        return {"mean": None, "max": None}
-    return {"mean": float(err.mean()), "max": float(err.max())}
-
-
-def pose_errors(mapper: VehicleMapper, truth: np.ndarray) -> dict:
-    """Position errors vs truth: all frames, GNSS-outage frames, and raw odometry in outages.
-
-    Odometry-only: uncalibrated wheel + gyro dead reckoning from the optimized pose of the last
-    GNSS-covered frame before each outage, through the outage (what the map would get without
-    the pose graph)."""
-    est = mapper.estimator
-    n = len(mapper.poses)
-    if n == 0:
-        return {
-            k: {"mean": None, "max": None}
-            for k in ("pose_error_m", "outage_pose_error_m", "odometry_only_error_m")
-        }
-    poses = np.array([mapper.poses[i] for i in range(n)])
-    err = np.linalg.norm(poses[:, :2] - truth[:n, :2], axis=1)
-    outage = np.array([not est.covered(i) for i in range(n)])
-    raw = est.raw_deltas()
-    odo_err = []
-    i = 0
-    while i < n:
-        if not outage[i] or i == 0:
-            i += 1
-            continue
-        j = i
-        while j < n and outage[j]:
-            j += 1
-        dr = dead_reckon(poses[i - 1], raw[i:j])[1:]
-        odo_err.append(np.linalg.norm(dr[:, :2] - truth[i:j, :2], axis=1))
-        i = j
-    odo = np.concatenate(odo_err) if odo_err else np.zeros(0)
-    return {
-        "pose_error_m": _stats(err),
-        "outage_pose_error_m": _stats(err[outage]),
-        "odometry_only_error_m": _stats(odo),
-    }
-
-
-def _write_json(path: Path, obj) -> None:
-    path.write_text(json.dumps(obj, indent=1, default=lambda o: None, allow_nan=False))
-
-
-def _clean(obj):
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    return obj
-
-
 # -- entry point -------------------------------------------------------------------------------
 
 
 def main(args, cfg: RoadmapConfig) -> int:
     log = DriveLog(args.log)
-    vehicle = args.id or log.meta.vehicle
     state = Path(args.state or Path(args.log) / ".vehicle")
     state.mkdir(parents=True, exist_ok=True)
     (state / "config.toml").write_text(to_toml(cfg))
-    stop = stop_event()
-    mapper = build_mapper(log, vehicle, cfg)
-    outbox = Outbox(state)
-    sealed = outbox.sealed(log.meta.traversal)
-    if sealed:
-        logger.info("resuming: %d patch sequences already in the outbox or acked", sealed)
-    timer = StageTimer()
+    run = VehicleRun(log, args.id or log.meta.vehicle, cfg, state)
+    with open_session(cfg.bus, "vehicle") as session:
+        run.map_and_upload(session)  # map here while the uploader thread sends and collects acks
+    run.write_outputs()  # summary.json, poses.npz, trajectory.tum, local_map.npz
+    return 0 if run.complete() else 1
 
-    def on_patches(patches):
-        new = [
-            p
-            for p in patches
-            if int(p.patch_id.rsplit(".", 1)[1]) >= outbox.sealed(log.meta.traversal)
-        ]
-        with uploader.sealing:
-            outbox.put(new)
-        if mapper.seq > outbox.sealed(log.meta.traversal):
-            outbox.set_sealed(log.meta.traversal, mapper.seq)
-        uploader.wake.set()
 
-    t0 = time.perf_counter()
-    with open_session(cfg.bus) as session:
-        uploader = Uploader(session, outbox, cfg, stop)
-        uploader.start()
+class VehicleRun:
+    """One `roadmap vehicle` run: the mapper on one drive log, its outbox and its uploader."""
+
+    def __init__(self, log: DriveLog, vehicle: str, cfg: RoadmapConfig, state: Path):
+        self.log, self.vehicle, self.cfg, self.state = log, vehicle, cfg, state
+        self.stop = stop_event()
+        self.mapper = build_mapper(log, vehicle, cfg)
+        self.outbox = Outbox(state)
+        self.resumed_from_seq = self.outbox.sealed(log.meta.traversal)
+        if self.resumed_from_seq:
+            logger.info("resuming: %d patch sequences already in the outbox or acked",
+                        self.resumed_from_seq)
+        self.timer = StageTimer()
+        self.uploader: Uploader | None = None
+        self.finished = self.stopped_upload = False
+        self.map_s = self.pending = None
+        self.t0 = time.perf_counter()
+
+    def on_patches(self, patches: list[GridPatch]) -> None:
+        """Sealed patches into the outbox (sequences sealed before a restart are there already),
+        then wake the uploader."""
+        traversal = self.log.meta.traversal
+        sealed = self.outbox.sealed(traversal)
+        with self.uploader.sealing:  # one seal goes up in one request
+            self.outbox.put([p for p in patches if int(p.patch_id.rsplit(".", 1)[1]) >= sealed])
+        if self.mapper.seq > self.outbox.sealed(traversal):
+            self.outbox.set_sealed(traversal, self.mapper.seq)
+        self.uploader.wake.set()
+
+    def map_and_upload(self, session) -> None:
+        """Map the whole log, then wait until every patch is acked (or the run is stopped)."""
+        self.token = session.liveliness().declare_token(keys.alive("vehicle", self.vehicle))
+        self.uploader = Uploader(session, self.outbox, self.cfg, self.stop, vehicle=self.vehicle)
+        self.uploader.start()
         try:
-            finished = map_log(log, mapper, on_patches, stop, timer)
-            map_s = time.perf_counter() - t0
-            uploader.mapping_done.set()
-            uploader.wake.set()
-            while uploader.is_alive() and not stop.is_set():
-                uploader.join(0.2)
+            self.finished = map_log(self.log, self.mapper, self.on_patches, self.stop, self.timer)
+            self.map_s = time.perf_counter() - self.t0
+            self.uploader.mapping_done.set()
+            self.uploader.wake.set()
+            while self.uploader.is_alive() and not self.stop.is_set():
+                self.uploader.join(0.2)
         finally:
-            stop_upload = stop.is_set()
-            stop.set()
-            uploader.join(10.0)
-            uploader.close()
-    counts = outbox.counts()
-    pending = len(outbox.pending())
-    summary = {
-        "vehicle": vehicle,
-        "traversal": log.meta.traversal,
-        "frames": mapper.frames_committed,
-        # distinct patches that left the vehicle, also in runs before a restart (acked ones)
-        "patches_sent": len(uploader.sent_ids | outbox.acked_ids()),
-        "send_attempts": uploader.sent,
-        "bytes_sent": uploader.bytes_sent,  # ingest payloads of this run, retries included
-        "patches_acked": counts["acked"],
-        "patches_accepted": counts["accepted"],
-        "duplicates": counts["duplicates"],
-        "patches_pending": pending,
-        "errors": uploader.errors,
-        "resumed_from_seq": sealed,
-        **pose_errors(mapper, log.streams["frame_pose_true"]),
-        "calibration": {
-            "odometry_scale": mapper.estimator.calibration.scale,
-            "gyro_bias_dps": math.degrees(mapper.estimator.calibration.gyro_bias_rps),
-        },
-        "per_stage_ms": timer.summary(),
-        "mapping_frames_per_s": mapper.frames_committed / map_s if finished and map_s > 0 else None,
-        "wall_s": time.perf_counter() - t0,
-    }
-    _write_json(state / "summary.json", _clean(summary))
-    labels, x0, y0 = mapper.local_map()
-    np.savez_compressed(state / "local_map.npz", labels=labels, origin_m=np.array([x0, y0]))
-    logger.info(
-        "vehicle %s: %d frames, %d patches acked, %d pending",
-        vehicle,
-        mapper.frames_committed,
-        counts["acked"],
-        pending,
-    )
-    if not finished or stop_upload or pending:
-        return 1
-    return 0
+            self.stopped_upload = self.stop.is_set()
+            self.stop.set()
+            self.uploader.join(10.0)
+            self.uploader.close()
+            self.token.undeclare()
+
+    def write_outputs(self) -> None:
+        counts = self.outbox.counts()
+        self.pending = len(self.outbox.pending())
+        write_summary(self.state, self._summary(counts))
+        write_poses(self.state, self.mapper.trajectory())
+        write_local_map(self.state, *self.mapper.local_map())
+        logger.info("vehicle %s: %d frames, %d patches acked, %d pending", self.vehicle,
+                    self.mapper.frames_committed, counts["acked"], self.pending)
+
+    def complete(self) -> bool:
+        """Mapped to the end and every patch acked, without being stopped."""
+        return self.finished and not self.stopped_upload and not self.pending
+
+    def _summary(self, counts: dict) -> dict:
+        m, up = self.mapper, self.uploader
+        return {
+            "vehicle": self.vehicle,
+            "traversal": self.log.meta.traversal,
+            "frames": m.frames_committed,
+            # distinct patches that left the vehicle, also in runs before a restart (acked ones)
+            "patches_sent": len(up.sent_ids | self.outbox.acked_ids()),
+            "send_attempts": up.sent,
+            "bytes_sent": up.bytes_sent,  # ingest payloads of this run, retries included
+            "patches_acked": counts["acked"],
+            "patches_accepted": counts["accepted"],
+            "duplicates": counts["duplicates"],
+            "patches_pending": self.pending,
+            "errors": up.errors,
+            "throttled": up.throttled,
+            "resumed_from_seq": self.resumed_from_seq,
+            "calibration": {
+                "odometry_scale": m.estimator.calibration.scale,
+                "gyro_bias_dps": math.degrees(m.estimator.calibration.gyro_bias_rps),
+            },
+            "per_stage_ms": self.timer.summary(),
+            "mapping_frames_per_s": (m.frames_committed / self.map_s
+                                     if self.finished and self.map_s > 0 else None),
+            "wall_s": time.perf_counter() - self.t0,
+        }

@@ -2,10 +2,8 @@
 (real bench_localizer runs: a local router and a localizer node per drive, on a short town
 drive), and the paired statistics it reports (services.bench.runner.paired_comparison)."""
 
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import pytest
 
@@ -13,14 +11,11 @@ from services.bench.runner import LOCALIZATION_METRICS, paired_comparison
 
 pytestmark = pytest.mark.integration
 
-SCRIPT = Path(__file__).resolve().parents[2] / "bench" / "compare_localizer.py"
-
 
 def _tool():
-    spec = importlib.util.spec_from_file_location("compare_localizer", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    from services.bench import compare_localizer
+
+    return compare_localizer
 
 
 def _errors(x, y, yaw):

@@ -1,6 +1,7 @@
 """End to end: `roadmap demo --small` with real processes (router, 2 merger shards, 2 mapping
 vehicles, 1 localizer) on the procedural town, and the same run with chaos (SIGKILL + restart of
-a shard and a vehicle in the middle of mapping). Bounds are stated next to each assertion."""
+a shard and a vehicle in the middle of mapping) over mutual TLS with the role ACL (--secure).
+Bounds are stated next to each assertion."""
 
 import json
 import os
@@ -45,7 +46,7 @@ def _demos(runs: dict[Path, list[str]], timeout: float = 400) -> dict:
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     base = tmp_path_factory.mktemp("demo")
-    reports = _demos({base / "plain": [], base / "chaos": ["--chaos"]})
+    reports = _demos({base / "plain": [], base / "chaos": ["--chaos", "--secure"]})
     return {name: (base / name, reports[base / name]) for name in ("plain", "chaos")}
 
 
@@ -131,6 +132,15 @@ def test_chaos_loses_nothing_and_keeps_the_map(runs):
     p = chaos["pipeline"]
     assert p["patches_acked"] == p["patches_applied"] == plain["pipeline"]["patches_applied"]
     assert chaos["map"]["digest"] == plain["map"]["digest"]  # same seed, same map
+
+
+def test_the_chaos_run_is_secure(runs):
+    """--secure (throwaway certificates): every role over tls/ with only its own rights, and
+    still the plain run's map (test_chaos_loses_nothing_and_keeps_the_map)."""
+    out, chaos = runs["chaos"]
+    assert chaos["run"]["router"].startswith("tls/")
+    assert (out / "certs" / "ca.pem").is_file()
+    assert chaos["localization"]["convergence_s"] is not None  # the localizer got its tiles
 
 
 @pytest.mark.skipif(os.environ.get("ROADMAP_SKIP_COMPOSE_CHECK") == "1", reason="disabled")

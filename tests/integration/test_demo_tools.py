@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from services.bench import runner as bench
-from services.demo import evaluate as ev
 from services.demo.fetch import run_fetch
 from services.demo.procs import Supervisor, cli_argv
+from services.eval import map as ev
 
 pytestmark = pytest.mark.integration
 

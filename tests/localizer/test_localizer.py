@@ -7,12 +7,12 @@ import pytest
 
 from common.classes import Cls
 from common.config import LocalizerConfig
+from services.eval.localization import localization_metrics
 from services.localizer.ekf import PoseFilter
 from services.localizer.icp import Icp
 from services.localizer.init import CoarseSearch
 from services.localizer.localizer import get_localizer, replay
 from services.localizer.map_cache import TileCache, class_slots
-from services.localizer.metrics import localization_metrics
 from services.localizer.synthetic import fill_cache, frame_points, straight_road, synthetic_drive
 
 
@@ -35,7 +35,9 @@ def test_icp_flags_parallel_lines_as_degenerate(rng):
     cache = fill_cache(TileCache(), straight_road(features=False, dashed=False))
     true = np.array([80.0, 28.25, 0.0])
     pts, cls = frame_points(cache, true, rng)
-    res = Icp().register(pts, class_slots(cls), true + [0.4, 0.3, 0.0], cache)
+    # cov_scale 4 (not the product's 60, which scales the covariance by 15): the bound on
+    # cov[1, 1] below was set for it
+    res = Icp(cov_scale=4.0).register(pts, class_slots(cls), true + [0.4, 0.3, 0.0], cache)
     assert res.degenerate
     assert abs(res.weak_direction[0]) > 0.99  # along the road (+x)
     assert abs(res.pose[1] - true[1]) < 0.05  # across the road it still locks on
@@ -202,7 +204,9 @@ def test_a_rival_that_matches_better_takes_over(rng):
         true = streams["frame_pose_true"][i]
         if (est.diag.get("rivals") or {}).get("switched") and seen["switched_at"] is None:
             seen["switched_at"] = float(true[0])
-        if est.ok and not seen["moved"] and true[0] > 116.0:  # arrow at 136 m, view 3-15 m
+        # once the filter tracks (its own trust, not the integrity flag, which waits for a
+        # protection level within the alert limit): arrow at 136 m, view 3-15 m
+        if loc.ekf.ok and not seen["moved"] and true[0] > 116.0:
             loc.ekf.reset(true + [3.0, 0.0, 0.0], loc.ekf.cov)
             loc.rivals = [(true.copy(), loc.odom.copy())]
             seen["moved"] = True
@@ -247,3 +251,18 @@ def test_ipm_noise_weighs_far_residuals_along_the_ray_less():
     assert w[0] < 0.1  # 12 m from the camera, along the ray: 0.2 m per pixel
     assert w[1] > 0.7  # the same point across the ray: 3 cm per pixel
     assert w[2] > 0.8  # 4 m ahead along the ray
+
+
+def test_a_pose_whose_protection_level_exceeds_the_alert_limit_is_not_ok(road_cache, rng):
+    """integrity: ok only while integrity_k x the position sigma lies within the alert limit;
+    the same drive with a looser limit reports the very same poses as ok."""
+    streams = synthetic_drive(rng, duration_s=12.0, gnss_bias_m=(3.0, -3.5))
+    frames = [frame_points(road_cache, p, rng) for p in streams["frame_pose_true"]]
+    strict = replay(get_localizer(LocalizerConfig(alert_limit_m=0.05), road_cache), streams,
+                    lambda i: frames[i])
+    loose = replay(get_localizer(LocalizerConfig(alert_limit_m=100.0), road_cache), streams,
+                   lambda i: frames[i])
+    sigma = [math.sqrt(np.linalg.eigvalsh(e.cov[:2, :2])[-1]) for e in strict]
+    assert any(e.ok for e in loose) and not any(
+        e.ok for e, s in zip(strict, sigma, strict=True) if 3.0 * s > 0.05)
+    assert np.allclose([e.pose for e in strict], [e.pose for e in loose], equal_nan=True)

@@ -4,7 +4,6 @@ The tile server is a real Zenoh queryable in a second session serving Tile messa
 and raw/1) on roadmap/tile/<tx>/<ty>, as a merger shard does."""
 
 import argparse
-import json
 import time
 
 import numpy as np
@@ -15,8 +14,11 @@ from common.bus import open_session
 from common.camera import camera_from_config
 from common.config import BusConfig, load_config
 from common.contours import CODEC, RAW_CODEC, encode_raw, encode_tile
+from common.drivelog import DriveLog
 from common.messages import Pose, Tile
+from services.eval.localization import evaluate_localizer
 from services.localizer.map_cache import TileCache
+from services.localizer.outputs import read_diagnostics, read_tiles
 from services.localizer.synthetic import fill_cache, straight_road, synthetic_drive, write_log
 from services.localizer.tiles import TileClient, tiles_needed
 from tests.conftest import spawn
@@ -114,18 +116,21 @@ def test_localize_command_end_to_end(router, world_cache, rng, tmp_path):
 
         assert main(argparse.Namespace(log=str(log), out=str(tmp_path / "out"), id=None), cfg) == 0
         time.sleep(0.5)
-    report = json.loads((tmp_path / "out" / "localization.json").read_text())
+    out = tmp_path / "out"
+    report = evaluate_localizer(out, DriveLog(log))  # the harness: outputs + the log's truth
     assert report["convergence_s"] is not None and report["convergence_s"] < 5.0
     assert report["availability_0_5m"] == 1.0
     # 8 s from a 4 m GNSS error: with the filter's prediction as ICP prior the first seconds
     # after initialization settle more slowly along the road (x p90 0.175 m here), while long
     # drives gain (Karlsruhe x/y mean 0.070/0.087 -> 0.062/0.051 m)
     assert report["x_m"]["p90"] < 0.2 and report["y_m"]["p90"] < 0.1
-    tum = np.loadtxt(tmp_path / "out" / "trajectory.tum")
+    tum = np.loadtxt(out / "trajectory.tum")
     assert tum.shape[1] == 8 and len(tum) > 40
     assert np.allclose(np.linalg.norm(tum[:, 4:], axis=1), 1.0)
-    rows = (tmp_path / "out" / "diagnostics.jsonl").read_text().splitlines()
+    rows = read_diagnostics(out / "diagnostics.jsonl")
     assert len(rows) == len(streams["frame_t_ns"])
+    assert not any(k.startswith("err") or k == "on_map" for r in rows for k in r)  # no truth
+    assert len(read_tiles(out / "tiles.npz")) == report["tiles_fetched"] > 0
     assert len(poses) > 40 and poses[-1].ok
 
 

@@ -166,8 +166,8 @@ def test_average_init_exports_the_fine_tune_blended_with_its_start(tmp_path, fra
                                                                    s_export):
     """--average-init 0.25: the export is 0.75 x the trained weights + 0.25 x --init's (the
     head's bias aside: the offsets are calibrated on the blend); the trained ones are kept."""
-    from training.cli import main
     from training.archs import ARCHS
+    from training.cli import main
     from training.data import TRAIN_CLASSES
     from training.net import RoadSegNet
     from training.train import _load_init
@@ -492,8 +492,8 @@ def test_distillation_needs_a_teacher_and_frames_at_the_start(tmp_path, capsys):
 def test_a_distilled_run_refuses_odd_crops_before_rendering(tmp_path, capsys, monkeypatch):
     """The teacher's logits are at 1/2 resolution, so its crops need even sides; a run is told
     so before it renders a frame or computes a teacher's logits."""
-    from training.cli import main
     from training import data as seg_data
+    from training.cli import main
 
     def no_rendering(**_):
         raise AssertionError("rendered frames before refusing the crop")
@@ -540,8 +540,8 @@ def test_bf16_on_a_cpu_without_native_bfloat16_warns_that_it_is_slower():
 def test_full_after_trains_crops_then_whole_frames_and_says_so(tmp_path, monkeypatch, frame_cache):
     """--full-after 0.5: the first half of the steps on --crop's windows, the rest on whole
     frames (one run from scratch ending as the fine-tunes train), in the log and the card."""
-    from training.cli import main
     from training import train
+    from training.cli import main
 
     windows = []
     crop_batch = train._crop_batch
@@ -624,8 +624,8 @@ def test_sky_cut_training_trains_on_the_rows_the_runtime_segments(tmp_path, monk
     from common.camera import camera_from_config
     from common.config import CameraConfig
     from common.segmentation import OnnxSegmenter
-    from training.cli import main
     from training import border, train
+    from training.cli import main
 
     seen = []
     crop_batch = train._crop_batch
@@ -701,8 +701,8 @@ def test_reexport_adds_logit_offsets_to_the_head(tmp_path, capsys):
     import onnxruntime as ort
 
     from common.classes import NUM_CLASSES
-    from training.cli import main
     from training.archs import ARCHS
+    from training.cli import main
     from training.data import TRAIN_CLASSES
     from training.net import RoadSegNet
     from training.train import export_onnx

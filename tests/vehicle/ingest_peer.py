@@ -1,4 +1,4 @@
-"""A real ingest shard stand-in for the vehicle tests: acks IngestBatches after a durable
+"""A real ingest shard stand-in for the vehicle tests: acks IngestBatches and SparseBatches after a durable
 SQLite write.
 
 `python -m tests.vehicle.ingest_peer --connect EP --db PATH [--shard 0] [--delay S]` declares
@@ -12,7 +12,8 @@ import time
 from common import codec, keys
 from common.bus import FifoChannel, ZError, open_session, stop_event
 from common.config import BusConfig
-from common.messages import ACCEPTED, DUPLICATE, IngestAck, IngestBatch
+from common.messages import ACCEPTED, DUPLICATE, IngestAck
+from services.merger.durable import grid_batch
 
 
 def serve(connect: str, db_path: str, shard: int, delay_s: float) -> None:
@@ -33,7 +34,7 @@ def serve(connect: str, db_path: str, shard: int, delay_s: float) -> None:
                 time.sleep(0.01)
                 continue
             with query:
-                batch = codec.decode(query.payload.to_bytes(), expect=IngestBatch)
+                batch = grid_batch(codec.decode(query.payload.to_bytes()))
                 time.sleep(delay_s)
                 results = {}
                 db.execute("BEGIN IMMEDIATE")

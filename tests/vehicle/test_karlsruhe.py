@@ -7,8 +7,8 @@ import pytest
 
 from common.config import load_config
 from common.drivelog import DriveLog
-from services.vehicle.node import StageTimer, build_mapper, map_log, pose_errors
-from services.vehicle.quality import local_map_quality
+from services.eval.mapping import local_map_quality, pose_errors
+from services.vehicle.node import StageTimer, build_mapper, map_log
 
 
 @pytest.fixture(scope="module")
@@ -39,5 +39,5 @@ def test_lane_lines_meet_the_quality_target(karlsruhe_drive):
 
 def test_poses_are_centimetre_level(karlsruhe_drive):
     _, log, mapper = karlsruhe_drive
-    err = pose_errors(mapper, log.streams["frame_pose_true"])
+    err = pose_errors(mapper.trajectory(), log.streams["frame_pose_true"])
     assert err["pose_error_m"]["mean"] <= 0.10

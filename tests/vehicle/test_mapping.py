@@ -7,10 +7,10 @@ from common.camera import build_ipm_lookup
 from common.config import load_config
 from common.drivelog import STREAM_KEYS, DriveLog, DriveLogMeta, DriveLogWriter
 from common.segmentation import DEFAULT_MODEL
+from services.eval.mapping import local_map_quality
 from services.sim.truth_segmenter import GroundTruthSegmenter
 from services.vehicle.mapper import VehicleMapper
 from services.vehicle.node import StageTimer, build_mapper, map_log
-from services.vehicle.quality import local_map_quality
 from services.vehicle.synthetic import mapping_camera, write_drive_log
 
 

@@ -91,11 +91,13 @@ def test_the_configured_form_is_built_and_checked(tmp_path):
     log_root = tmp_path / "log"
     write_drive_log(log_root, np.random.default_rng(0), length_m=30.0, frame_stride=4)
     log = DriveLog(log_root)
-    cfg = load_config(env={}, sets=["vehicle.patch_form=sparse", "segmentation.kind=truth"])
+    cfg = load_config(env={}, sets=["segmentation.kind=truth"])  # the default: sparse
     mapper = build_mapper(log, "v", cfg)
     assert isinstance(mapper.patch_form, SparseForm)
     assert mapper.seal_every_frames == cfg.vehicle.sparse_seal_every_frames
-    assert isinstance(build_mapper(log, "v", load_config(env={}, sets=["segmentation.kind=truth"]))
-                      .patch_form, CellsForm)
+    cells = load_config(env={}, sets=["vehicle.patch_form=cells", "segmentation.kind=truth"])
+    mapper = build_mapper(log, "v", cells)
+    assert isinstance(mapper.patch_form, CellsForm)
+    assert mapper.seal_every_frames == cells.vehicle.seal_every_frames
     with pytest.raises(ConfigError, match="patch_form"):
         load_config(env={}, sets=["vehicle.patch_form=polygons"])

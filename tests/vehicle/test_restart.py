@@ -24,6 +24,8 @@ SETS = [
     "vehicle.upload_batch=1",
     "--set",
     "vehicle.seal_every_frames=20",
+    "--set",
+    "vehicle.sparse_seal_every_frames=20",
 ]
 
 

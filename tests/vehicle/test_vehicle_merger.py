@@ -11,7 +11,10 @@ import pytest
 from common import codec, keys
 from common.bus import open_session
 from common.config import BusConfig
+from common.drivelog import DriveLog
 from common.messages import Stats
+from services.eval.mapping import pose_errors
+from services.vehicle.outputs import read_poses
 from services.vehicle.synthetic import write_drive_log
 from tests.conftest import roadmap, spawn
 
@@ -50,6 +53,11 @@ def test_vehicle_uploads_to_a_real_shard_exactly_once(tmp_path, router, form):
         assert a["patches_acked"] == a["patches_accepted"] > 0 and a["duplicates"] == 0
         applied = _merger_counters(router)["patches_applied"]
         assert applied == a["patches_accepted"]
+        assert "pose_error_m" not in a  # accuracy is the harness's, from the node's poses:
+        truth = DriveLog(log).streams["frame_pose_true"]
+        err = pose_errors(read_poses(tmp_path / "state-a"), truth)
+        assert err["pose_error_m"]["mean"] < 0.05
+        assert len(np.loadtxt(tmp_path / "state-a" / "trajectory.tum")) == a["frames"]
 
         second = _run_vehicle(log, tmp_path / "state-b", router, FORMS[form])  # fresh state
         assert second.returncode == 0, second.stderr[-3000:]

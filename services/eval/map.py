@@ -1,8 +1,9 @@
-"""The demo's evaluation: merged tiles vs the world's ground truth, codec fidelity, map size,
-the map digest, localization errors and the repaint check. Pure functions on arrays.
+"""The merged map against the world's ground truth: the report's `map` section (per-class
+precision and recall, codec fidelity, map size, the map digest), the area the mapping drives
+observed, and the repaint check. Pure functions on arrays.
 
 Rasters are world-aligned mosaics of tiles (0.1 m cells, row = north) whose south-west corner is
-the south-west corner of the lowest tile; trajectories are (x, y, yaw) in the world frame."""
+the south-west corner of the lowest tile; poses are (x, y, yaw) in the world frame."""
 
 import hashlib
 import struct
@@ -12,16 +13,8 @@ import numpy as np
 
 from common.classes import MARKINGS, NAMES, Cls
 from common.evaluation import precision_recall
-from common.geometry import wrap_angle
 from common.grid import CELL_M, TILE_CELLS, tile_origin_m
 
-# The paper's numbers (Qin et al. 2021, Table I and Sec. V-B), for the printed comparison.
-PAPER = {
-    "x_m": {"mean": 0.043, "p90": 0.104},
-    "y_m": {"mean": 0.040, "p90": 0.092},
-    "yaw_deg": {"mean": 0.124, "p90": 0.240},
-    "kb_per_km": 36.0,
-}
 # Repaint rule: the map follows when it shows >= 50 % of the new line and <= 20 % of the old one.
 FOLLOW_NEW_MIN = 0.5
 FOLLOW_OLD_MAX = 0.2
@@ -121,45 +114,6 @@ def km_mapped(drives_xy_m: list[np.ndarray]) -> float:
     from services.sim.routes import km_of_centrelines
 
     return float(km_of_centrelines([np.asarray(d, float) for d in drives_xy_m if len(d) > 1]))
-
-
-# -- localization --------------------------------------------------------------------------------
-
-
-def read_tum(text: str) -> np.ndarray:
-    """TUM trajectory lines `t x y z qx qy qz qw` -> (N, 4) of (t_s, x, y, yaw)."""
-    rows = []
-    for line in text.splitlines():
-        if not line.strip() or line.startswith("#"):
-            continue
-        t, x, y, _z, qx, qy, qz, qw = (float(v) for v in line.split()[:8])
-        yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
-        rows.append((t, x, y, yaw))
-    return np.array(rows, float).reshape(-1, 4)
-
-
-def interp_poses(t_query_s: np.ndarray, t_s: np.ndarray, poses: np.ndarray) -> np.ndarray:
-    """Linear interpolation of (x, y, yaw) at query times (yaw unwrapped first)."""
-    yaw = np.unwrap(poses[:, 2])
-    return np.stack([np.interp(t_query_s, t_s, poses[:, 0]), np.interp(t_query_s, t_s, poses[:, 1]),
-                     wrap_angle(np.interp(t_query_s, t_s, yaw))], axis=1)
-
-
-def pose_errors(est: np.ndarray, truth: np.ndarray) -> dict[str, np.ndarray]:
-    """Per-pose errors: x, y (world), lateral, longitudinal (vehicle frame of the truth), yaw."""
-    d = est[:, :2] - truth[:, :2]
-    c, s = np.cos(truth[:, 2]), np.sin(truth[:, 2])
-    return {"x_m": d[:, 0], "y_m": d[:, 1], "longitudinal_m": c * d[:, 0] + s * d[:, 1],
-            "lateral_m": -s * d[:, 0] + c * d[:, 1],
-            "yaw_deg": np.degrees(wrap_angle(est[:, 2] - truth[:, 2]))}
-
-
-def error_stats(values: np.ndarray) -> dict:
-    a = np.abs(np.asarray(values, float))
-    a = a[np.isfinite(a)]
-    if a.size == 0:
-        return {"mean": None, "p90": None, "max": None}
-    return {"mean": float(a.mean()), "p90": float(np.percentile(a, 90)), "max": float(a.max())}
 
 
 # -- repaint ----------------------------------------------------------------------------------

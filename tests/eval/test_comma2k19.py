@@ -1,6 +1,6 @@
 """The pose graph on the real comma2k19 drive (consumer GNSS + CAN speed + gyro)."""
 
-from services.vehicle.comma2k19 import evaluate, load_segment
+from services.eval.comma2k19 import evaluate, load_segment
 
 
 def test_segment_loads_into_a_consistent_local_frame(shared_data):

@@ -1,0 +1,98 @@
+"""Sources that fill a ViewerState: a live fleet over Zenoh (tile-update and pose subscriptions,
+plus a refresher thread that lists the shards' tiles and counters, catches up on any tile newer
+than the one held, and reads the liveliness tokens), or the tiles of a demo's folder on disk."""
+
+import logging
+import threading
+
+from common import codec, keys
+from common.bus import Callback, ZError
+from common.errors import CodecError
+from common.messages import Pose, Tile
+from services import fleet
+from services.viewer.state import ViewerState
+
+logger = logging.getLogger(__name__)
+
+
+class LiveFeed:
+    """Subscriptions are cheap callbacks on the session's RX thread (decode, store); the tile
+    PNGs are rendered later, by the page's requests."""
+
+    def __init__(self, session, state: ViewerState, *, ident: str, stats_every_s: float,
+                 timeout_s: float):
+        self.session, self.state = session, state
+        self.stats_every_s, self.timeout_s = stats_every_s, timeout_s
+        self._stop = threading.Event()
+        self.tile_sub = session.declare_subscriber(
+            keys.TILE_UPDATE_ALL, Callback(self._on_tile, indirect=False))
+        self.pose_sub = session.declare_subscriber(
+            keys.POSE_ALL, Callback(self._on_pose, indirect=False))
+        self.token = session.liveliness().declare_token(keys.alive("viewer", ident))
+        self.thread = threading.Thread(target=self._refresh_loop, name="viewer-refresh",
+                                       daemon=True)
+
+    def start(self) -> "LiveFeed":
+        self.thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        self.thread.join(timeout=10.0)
+        for entity in (self.token, self.tile_sub, self.pose_sub):
+            try:
+                entity.undeclare()
+            except ZError as exc:
+                logger.debug("undeclare: %s", exc)
+
+    def _on_tile(self, sample) -> None:
+        try:
+            self.state.put_tile(codec.decode(sample.payload.to_bytes(), expect=Tile))
+        except CodecError as exc:
+            logger.warning("tile update %s: %s", sample.key_expr, exc)
+
+    def _on_pose(self, sample) -> None:
+        try:
+            self.state.put_pose(codec.decode(sample.payload.to_bytes(), expect=Pose))
+        except CodecError as exc:
+            logger.warning("pose %s: %s", sample.key_expr, exc)
+
+    def _refresh_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.refresh()
+            except (ZError, CodecError) as exc:  # the router away, a bad reply: try again
+                logger.warning("refresh: %s", exc)
+            self._stop.wait(self.stats_every_s)
+
+    def refresh_stats(self) -> dict:
+        """The shards' counters and tile lists now (also for a clicked tile's panel)."""
+        stats = fleet.shard_stats(self.session, self.timeout_s)
+        owners = fleet.tile_owners(stats)
+        self.state.put_stats(stats, owners)
+        return owners
+
+    def refresh(self) -> None:
+        """Shards' counters and tile lists, liveliness, and every listed tile the state lacks
+        or holds an older version of (a publication missed, or sent before the viewer)."""
+        owners = self.refresh_stats()
+        self.state.put_alive(fleet.alive(self.session, self.timeout_s))
+        held = self.state.versions()
+        for tile, shard in sorted(owners.items()):
+            if self._stop.is_set():
+                return
+            msg = fleet.get_tile(self.session, tile, self.timeout_s, since=held.get(tile))
+            if msg is not None:
+                self.state.put_tile(msg, shard)
+
+
+def load_folder(state: ViewerState, path) -> None:
+    """The tiles of a demo's output folder, shard stores or tiles.npz, once."""
+    from services.export.sources import read_folder
+
+    stored = read_folder(path)
+    for tile in stored.tiles:
+        state.put_tile(tile, stored.owners.get(tuple(tile.tile)))
+    state.put_stats({row["shard"]: {"patches": row["patches"], "tiles": row["tiles"],
+                                    "store": row["path"]} for row in stored.stores},
+                    stored.owners)

@@ -1,0 +1,103 @@
+"""roadmap eval: per-frame scoring against the truth, the suite's summary, and one real drive
+(router, shards, vehicles, localizer) through the command, resumed on a second call."""
+
+import json
+
+import numpy as np
+import pytest
+
+from services.eval.score import score_frames
+from services.eval.suite import Drive, parse_seeds, suite_drives
+from services.eval.summary import summarize
+from tests.conftest import roadmap
+
+
+def _truth(n):
+    return np.stack([np.arange(n) * 1.0, np.zeros(n), np.zeros(n)], 1)
+
+
+def test_a_wrong_pose_reported_ok_is_an_integrity_violation():
+    n = 50
+    truth = _truth(n)
+    est = truth.copy()
+    est[30:35, 0] += 0.8  # five frames 0.8 m off
+    ok = np.ones(n, bool)
+    ok[33:35] = False  # the car flagged two of them
+    t_ns = np.arange(n) * 100_000_000
+    s = score_frames(t_ns, est, ok, truth, np.ones(n, bool))
+    assert s["integrity_violations"] == 3
+    assert s["markings_in_view"]["availability_0_5m"] == pytest.approx(45 / 50)
+
+
+def test_statistics_are_taken_over_frames_with_markings_in_view_and_over_all():
+    n = 40
+    truth = _truth(n)
+    est = truth.copy()
+    est[:, 1] += np.where(np.arange(n) < 20, 0.02, 0.2)  # worse where nothing is in view
+    in_view = np.arange(n) < 20
+    s = score_frames(np.arange(n) * 100_000_000, est, np.ones(n, bool), truth, in_view)
+    assert s["markings_in_view"]["y_m"]["mean"] == pytest.approx(0.02)
+    assert s["all_frames"]["y_m"]["mean"] == pytest.approx(0.11)
+    assert s["frames_without_markings"] == 20
+
+
+def test_convergence_counts_from_the_first_marking_in_view():
+    n = 100
+    truth = _truth(n)
+    est = np.full((n, 3), np.nan)
+    est[40:] = truth[40:]  # a pose from frame 40 (4.0 s) on
+    in_view = np.arange(n) >= 10  # the first marking at frame 10 (1.0 s)
+    s = score_frames(np.arange(n) * 100_000_000, est, np.zeros(n, bool), truth, in_view)
+    assert s["convergence_s"] == pytest.approx(3.0)
+
+
+def test_the_summary_takes_distributions_over_drives_and_checks_the_goal():
+    def entry(x, avail=1.0, conv=1.0, viol=0):
+        stats = {k: {"mean": x, "p90": x, "max": x}
+                 for k in ("x_m", "y_m", "lateral_m", "longitudinal_m", "yaw_deg")}
+        over = {**stats, "availability_0_5m": avail, "frames": 10}
+        return {"ok": True, "score": {"markings_in_view": over, "all_frames": over,
+                                      "frames": 10, "frames_without_markings": 2,
+                                      "integrity_violations": viol, "convergence_s": conv},
+                "report": {"map": {"per_class": {"lane_line": {"precision": 0.97,
+                                                               "recall": 0.9}}}}}
+
+    entries = [entry(0.01), entry(0.02), entry(0.03, avail=0.95, viol=2), {"ok": False}]
+    s = summarize(entries)
+    assert (s["drives"], s["failed"]) == (4, 1)
+    assert s["x_m"]["median"] == pytest.approx(0.02) and s["x_m"]["worst"] == 0.03
+    assert s["availability_0_5m"] == {"min": 0.95, "median": 1.0}
+    assert s["integrity_violations"] == 2 and s["frames_without_markings"] == pytest.approx(0.2)
+    assert s["map"]["lane_line"]["precision"] == {"min": 0.97, "median": 0.97}
+    assert s["goal_met"]["x_m_median"] and not s["goal_met"]["no_integrity_violation"]
+    assert not s["goal_met"]["availability_every_drive"]
+
+
+def test_suites_and_seeds():
+    assert len(suite_drives("default")) >= 24 or not suite_drives("default")[0].world.startswith(
+        ("lanelet2", "av2"))
+    assert parse_seeds("3-5,9") == [3, 4, 5, 9]
+    with pytest.raises(ValueError):
+        parse_seeds("a-b")
+    assert Drive("town:2", 7).name == "town-2-s7"
+
+
+@pytest.mark.integration
+def test_roadmap_eval_runs_a_drive_scores_it_and_resumes(tmp_path):
+    out = tmp_path / "eval"
+    args = ("eval", "--world", "town", "--seeds", "101", "--vehicles", "2",
+            "--set", "demo.max_km=0.15", "--out", str(out))
+    res = roadmap(*args, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    result = json.loads((out / "eval.json").read_text())
+    (drive,) = result["drives"]
+    assert drive["ok"] and drive["world"] == "town" and drive["seed"] == 101
+    assert drive["report"]["pipeline"]["patches_acked"] == drive["report"]["pipeline"][
+        "patches_applied"]
+    s = result["summary"]
+    assert s["drives"] == 1 and s["failed"] == 0 and s["x_m"]["median"] is not None
+    assert (out / "eval.png").stat().st_size > 1000
+    again = roadmap(*args, timeout=120)  # read back, not driven again
+    assert again.returncode == 0 and "town-s101: ok" in again.stderr
+    other = roadmap("eval", "--world", "town", "--seeds", "101", "--out", str(out), timeout=60)
+    assert other.returncode == 1 and "other settings" in other.stderr
