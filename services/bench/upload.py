@@ -131,7 +131,7 @@ def mosaic(shard: MergerShard, tiles) -> np.ndarray:
 def map_quality(shard: MergerShard, world, logs, cfg) -> dict:
     """Per marking class, precision and recall of the merged map against the world's truth
     (recall inside the ROI the drives swept), as the demo's report computes them."""
-    from services.demo import evaluate as ev
+    from services.eval import map as ev
 
     tiles = shard.tiles()
     m = ev.Mosaic(tiles)
