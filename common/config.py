@@ -248,6 +248,9 @@ class MergerConfig:
     store: str = ""
     lease_s: float = 4.0  # a worker's region lease lasts this long unless renewed (fencing epoch)
     lease_renew_s: float = 0.5  # the worker's control tick: renew, claim, release regions
+    # "rx,ry" -> worker id: that worker holds the region while it is alive (else rendezvous
+    # hashing over the live workers decides, as for every region not listed)
+    region_owners: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

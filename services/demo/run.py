@@ -166,16 +166,22 @@ class DemoRun:
 
     def _spread_shards(self, logs: dict) -> None:
         """grid.shard_map spreading the regions the mapping drives touch over the SQLite shards
-        (demo.spread_shards, an empty shard_map, not --small); every process reads config.toml."""
-        if self.store or self.args.small or not self.d.spread_shards or self.cfg.grid.shard_map:
+        (with --store: merger.region_owners over the workers s<k>); demo.spread_shards, neither
+        set already, not --small. Every process reads config.toml."""
+        g, m = self.cfg.grid, self.cfg.merger
+        if self.args.small or not self.d.spread_shards or g.shard_map or m.region_owners:
             return
         mapping = [log for key, group in logs.items() if key != "production" for log in group]
         shard_map = spread.spread_shard_map(spread.frames_per_region(mapping), self.args.shards)
-        self.cfg = dataclasses.replace(
-            self.cfg, grid=dataclasses.replace(self.cfg.grid, shard_map=shard_map))
+        if self.store:  # the workers pgfleet starts are s0..s<K-1>
+            m = dataclasses.replace(m, region_owners={k: f"s{v}" for k, v in shard_map.items()})
+        else:
+            g = dataclasses.replace(g, shard_map=shard_map)
+        self.cfg = dataclasses.replace(self.cfg, grid=g, merger=m)
         (self.out / "config.toml").write_text(to_toml(self.cfg))
         self.spread["shard_map"] = shard_map
-        logger.info("grid.shard_map: %s", shard_map)
+        logger.info("regions over the shards (%s): %s",
+                    "merger.region_owners" if self.store else "grid.shard_map", shard_map)
 
     def _start_cloud(self, sup: Supervisor) -> None:
         _require("services.merger.node", "the merger service (services.merger.node)")
