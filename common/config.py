@@ -93,6 +93,13 @@ class DemoConfig:
     max_km: float = 0.4  # length of each simulated drive
     small_max_km: float = 0.2  # --small (the localizer needs ~100 m to converge)
     drives: int = 1  # mapping drives per vehicle
+    # a fleet whose shared route's first max_km touch fewer regions than there are shards gets
+    # this many more mapping vehicles on the world's route reaching most other regions (2: its
+    # cells get merger.min_votes), so every shard has work (services/demo/spread.py; not --small)
+    spread_vehicles: int = 2
+    # the SQLite demo sets grid.shard_map (when empty) to spread the regions its mapping drives
+    # touch over the shards, heaviest first to the least loaded (not --small)
+    spread_shards: bool = True
     repaint_drives_before: int = 2  # per vehicle, old paint
     repaint_drives_after: int = 5  # single traversals after the repaint, one at a time
     repaint_min_km: float = 0.3  # repaint drives reach the moved line (120-250 m into the route)
@@ -241,6 +248,9 @@ class MergerConfig:
     store: str = ""
     lease_s: float = 4.0  # a worker's region lease lasts this long unless renewed (fencing epoch)
     lease_renew_s: float = 0.5  # the worker's control tick: renew, claim, release regions
+    # "rx,ry" -> worker id: that worker holds the region while it is alive (else rendezvous
+    # hashing over the live workers decides, as for every region not listed)
+    region_owners: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ import logging
 import os
 from pathlib import Path
 
+from common import keys
 from common.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -182,13 +183,14 @@ def tls_settings(cert_dir: str | os.PathLike, role: str, *, listen: bool) -> dic
 # router sees it: "ingress" = what the role sends to the router, "egress" = what the router
 # delivers to it. Anything not listed is denied (default_permission deny).
 _ALIVE = "roadmap/alive"
+_REGION_INGEST = keys.REGION_INGEST_ALL  # roadmap/region/*/*/ingest (grid.routing = "region")
 ROLE_RULES: dict[str, dict[str, list[tuple[list[str], list[str]]]]] = {
     "vehicle": {
-        "ingress": [(["query"], ["roadmap/ingest/*"]),
+        "ingress": [(["query"], ["roadmap/ingest/*", _REGION_INGEST]),
                     (["liveliness_token"], [f"{_ALIVE}/vehicle/*"]),
                     (["liveliness_query", "declare_liveliness_subscriber"],
                      [f"{_ALIVE}/merger/*"])],  # waits for the owner shard before sending
-        "egress": [(["reply"], ["roadmap/ingest/*"]),
+        "egress": [(["reply"], ["roadmap/ingest/*", _REGION_INGEST]),
                    (["liveliness_token"], [f"{_ALIVE}/merger/*"])],
     },
     "localizer": {
@@ -199,13 +201,19 @@ ROLE_RULES: dict[str, dict[str, list[tuple[list[str], list[str]]]]] = {
         "egress": [(["reply"], ["roadmap/tile/*/*"]),
                    (["put"], ["roadmap/tile-update/*/*"])],
     },
+    # shards, PostgreSQL workers (region ingest, lease peers' liveliness) and tile servers
     "merger": {
         "ingress": [(["declare_queryable", "reply"],
-                     ["roadmap/ingest/*", "roadmap/tile/*/*", "roadmap/stats/merger/*"]),
+                     ["roadmap/ingest/*", _REGION_INGEST, "roadmap/tile/*/*",
+                      "roadmap/stats/merger/*", "roadmap/stats/tileserver/*"]),
                     (["put"], ["roadmap/tile-update/*/*"]),
-                    (["liveliness_token"], [f"{_ALIVE}/merger/*"])],
+                    (["liveliness_token"], [f"{_ALIVE}/merger/*", f"{_ALIVE}/tileserver/*"]),
+                    (["liveliness_query", "declare_liveliness_subscriber"],
+                     [f"{_ALIVE}/merger/*"])],  # a worker watches its peers (rendezvous)
         "egress": [(["query"],
-                    ["roadmap/ingest/*", "roadmap/tile/*/*", "roadmap/stats/merger/*"])],
+                    ["roadmap/ingest/*", _REGION_INGEST, "roadmap/tile/*/*",
+                     "roadmap/stats/merger/*", "roadmap/stats/tileserver/*"]),
+                   (["liveliness_token"], [f"{_ALIVE}/merger/*"])],
     },
     "monitor": {
         "ingress": [(["query"], ["roadmap/stats/**"]),

@@ -1,7 +1,8 @@
 """`roadmap bench`: run every stage's benchmark (services/bench/<name>.py, each
 `run(quick) -> dict`) and write OUT/bench.json in the shape of DESIGN.md (cores, python,
 onnxruntime; stages; merge; scaling; mapper; and upload: both patch forms' bytes per km
-driven and shard ingest CPU per km, services/bench/upload.py). A benchmark that is missing or
+driven and shard ingest CPU per km, services/bench/upload.py; postgres: workers, takeover and
+tile servers on a private PostgreSQL, services/bench/postgres.py). A benchmark that is missing or
 fails is recorded with its error. Each runs in its own process group (`python -m
 services.bench.runner NAME`), killed afterwards, so a crash or a process a benchmark leaves
 behind cannot outlive it."""
@@ -21,8 +22,9 @@ from pathlib import Path
 
 logger = logging.getLogger("roadmap.bench")
 
-BENCHMARKS = ("render", "segmentation", "vehicle", "merger", "codec", "localizer", "upload")
-SECTIONS = ("stages", "merge", "scaling", "mapper", "upload")
+BENCHMARKS = ("render", "segmentation", "vehicle", "merger", "codec", "localizer", "upload",
+              "postgres")
+SECTIONS = ("stages", "merge", "scaling", "mapper", "upload", "postgres")
 
 
 def load_bench(name: str, bench_dir: Path | None = None):

@@ -21,7 +21,7 @@ from common.config import RoadmapConfig, to_toml
 from common.drivelog import DriveLog
 from common.errors import ConfigError
 from common.grid import owner_of_tile, tile_of_point
-from services.demo import figures, pgfleet, report
+from services.demo import figures, pgfleet, report, spread
 from services.demo.errors import DemoError
 from services.demo.fetch import load_tiles, run_fetch
 from services.demo.procs import ProcessError, Supervisor
@@ -73,6 +73,7 @@ class DemoRun:
             self.max_km = max(self.max_km, self.d.repaint_min_km)
         self.world = self.world_after = None
         self.router_endpoint: str | None = None
+        self.spread: dict = {}  # the extra vehicles' route and the shard_map (spread.py)
 
     def step(self, name: str, fn, *a, **kw):
         logger.info("[%5.1f s] %s ...", time.monotonic() - self.t0, name)
@@ -87,6 +88,7 @@ class DemoRun:
             report.fleet_segmenter(self.cfg)
         self.world = self.step("load world", self._load_world)
         logs = self.step("simulate drives", self._simulate)
+        self._spread_shards(logs)
         with Supervisor(self.out / "logs", config=self.out / "config.toml") as sup:
             self.step("start router and shards", self._start_cloud, sup)
             start_viewer(sup, getattr(self.args, "viewer", None))  # roadmap demo --viewer [PORT]
@@ -134,6 +136,7 @@ class DemoRun:
             logs["mapping"] = sim.simulate_drives(self.world, drives / "mapping", vehicles=m,
                                                   drives=self.d.drives, profile="mapping",
                                                   seed=seed, **kw)
+            logs["mapping"] += self._spread_drives(sim, drives / "mapping", kw)
         world_now = self.world_after or self.world
         logs["production"] = sim.simulate_drives(
             world_now, drives / "production", vehicles=1, drives=1, profile="production",
@@ -141,6 +144,44 @@ class DemoRun:
         logger.info("drive logs: %d mapping, %d after repaint, 1 production",
                     len(logs["mapping"]), len(logs.get("after", [])))
         return logs
+
+    def _spread_drives(self, sim, out: Path, kw: dict) -> list[Path]:
+        """demo.spread_vehicles more mapping vehicles (ids after the fleet's) on the route
+        reaching most regions the shared route does not, when that one touches fewer regions
+        than there are shards (services/demo/spread.py)."""
+        n, shards, routes = self.d.spread_vehicles, self.args.shards, self.world.routes
+        if self.args.small or n < 1 or shards < 2 or not routes:
+            return []
+        if len(spread.route_regions(routes[0], self.max_km)) >= shards:
+            return []  # the shared route alone reaches as many regions as there are shards
+        route = spread.spread_route(routes, self.max_km)
+        if route is None:
+            return []
+        logger.info("fleet: %d more vehicles on route %d (regions %s) so every shard has work",
+                    n, route, sorted(spread.route_regions(routes[route], self.max_km)))
+        self.spread.update(vehicles=n, route=route)
+        return sim.simulate_drives(self.world, out, vehicles=n, drives=self.d.drives,
+                                   profile="mapping", seed=self.args.seed, route=route,
+                                   first_vehicle=self.args.vehicles, **kw)
+
+    def _spread_shards(self, logs: dict) -> None:
+        """grid.shard_map spreading the regions the mapping drives touch over the SQLite shards
+        (with --store: merger.region_owners over the workers s<k>); demo.spread_shards, neither
+        set already, not --small. Every process reads config.toml."""
+        g, m = self.cfg.grid, self.cfg.merger
+        if self.args.small or not self.d.spread_shards or g.shard_map or m.region_owners:
+            return
+        mapping = [log for key, group in logs.items() if key != "production" for log in group]
+        shard_map = spread.spread_shard_map(spread.frames_per_region(mapping), self.args.shards)
+        if self.store:  # the workers pgfleet starts are s0..s<K-1>
+            m = dataclasses.replace(m, region_owners={k: f"s{v}" for k, v in shard_map.items()})
+        else:
+            g = dataclasses.replace(g, shard_map=shard_map)
+        self.cfg = dataclasses.replace(self.cfg, grid=g, merger=m)
+        (self.out / "config.toml").write_text(to_toml(self.cfg))
+        self.spread["shard_map"] = shard_map
+        logger.info("regions over the shards (%s): %s",
+                    "merger.region_owners" if self.store else "grid.shard_map", shard_map)
 
     def _start_cloud(self, sup: Supervisor) -> None:
         _require("services.merger.node", "the merger service (services.merger.node)")
@@ -339,7 +380,8 @@ class DemoRun:
         settings = {"seed": a.seed, "vehicles": a.vehicles, "shards": a.shards,
                     "scenario": a.scenario, "chaos": a.chaos, "small": a.small,
                     "max_km_per_drive": self.max_km, "segmenter": self.kind,
-                    "images": self.d.images, "store": "postgresql" if self.store else "sqlite"}
+                    "images": self.d.images, "store": "postgresql" if self.store else "sqlite",
+                    "spread": self.spread}
         return report.DemoOutputs(
             out=self.out, cfg=self.cfg, world=self.world_after or self.world,
             production_log=production_log, stats=stats, vehicles=self.vehicles, update=update,

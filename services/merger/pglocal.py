@@ -113,3 +113,30 @@ class LocalPostgres:
         except (PgUnavailable, subprocess.TimeoutExpired):
             pass
         shutil.rmtree(self.dir, ignore_errors=True)
+
+
+def main() -> int:
+    """`python -m services.merger.pglocal [--db NAME]`: a private server until Ctrl-C (or
+    SIGTERM); prints the database's postgresql:// URL on stdout, for `roadmap demo --store`."""
+    import argparse
+    import signal
+    import sys
+
+    parser = argparse.ArgumentParser(prog="python -m services.merger.pglocal")
+    parser.add_argument("--db", default="roadmap", help="database to create (default roadmap)")
+    args = parser.parse_args()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    server = LocalPostgres()
+    try:
+        sys.stdout.write(server.create_database(args.db) + "\n")
+        sys.stdout.flush()
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        server.close()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

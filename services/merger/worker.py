@@ -4,7 +4,8 @@ lease in PostgreSQL (services/merger/pgstore.py), so workers scale out, fail ove
 Each held region is its own DurableShard (MergerShard + RegionStore at the lease's epoch), so a
 region moves between workers whole: released by one, claimed and replayed from the stored patch
 log by the next. Which worker should hold a region is rendezvous hashing over the live workers
-(liveliness `roadmap/alive/merger/<id>`, common.grid.owner_among). A control tick
+(liveliness `roadmap/alive/merger/<id>`, common.grid.owner_among), unless merger.region_owners
+names a live worker for it. A control tick
 (merger.lease_renew_s) renews this worker's leases in one statement, releases the regions that a
 live peer should now hold (after persisting their tiles), and claims the regions it should hold
 whose lease is free, expired, or held by a worker that is no longer alive. A region nobody holds
@@ -77,6 +78,7 @@ class RegionTable:
     lease_s: float
     merger_cfg: object
     held: dict[RegionId, Holder] = field(default_factory=dict)
+    region_owners: dict[str, str] = field(default_factory=dict)  # merger.region_owners
     counters: dict[str, int] = field(default_factory=lambda: {
         "claims": 0, "released": 0, "lost": 0, "fenced": 0, "store_errors": 0})
     log: list[dict] = field(default_factory=list)
@@ -84,6 +86,14 @@ class RegionTable:
     def __post_init__(self):
         self.leases = Leases(self.control_db, self.ident, self.lease_s)
         self.lock = threading.RLock()
+
+    def owner(self, region: RegionId, everyone: set[str]) -> str | None:
+        """Who should hold a region: its merger.region_owners worker while alive, else the
+        rendezvous winner among the live workers."""
+        pinned = self.region_owners.get(f"{region[0]},{region[1]}")
+        if pinned is not None and pinned in everyone:
+            return pinned
+        return owner_among(region, sorted(everyone))
 
     def get(self, region: RegionId) -> Holder | None:
         with self.lock:
@@ -106,7 +116,7 @@ class RegionTable:
         for r in gone:
             self.drop(r, "lost")
         for r in sorted(kept):
-            if owner_among(r, sorted(everyone)) != self.ident:
+            if self.owner(r, everyone) != self.ident:
                 self.release(r)
                 gone.append(r)
         gained = []
@@ -118,7 +128,7 @@ class RegionTable:
         return gained, gone
 
     def _should_claim(self, region, owner, valid, everyone, steal_dead) -> bool:
-        if owner_among(region, sorted(everyone)) != self.ident:
+        if self.owner(region, everyone) != self.ident:
             return False
         return (owner is None or not valid or owner == self.ident
                 or (steal_dead and owner not in everyone))
@@ -128,7 +138,7 @@ class RegionTable:
         """A region this worker does not hold got an ingest on the fallback queryable: claim it
         if it is ours by rendezvous and free (never leased, expired, or its owner is gone)."""
         everyone = set(members) | {self.ident}
-        if owner_among(region, sorted(everyone)) != self.ident:
+        if self.owner(region, everyone) != self.ident:
             return None
         lease = self.leases.all().get(tuple(region))
         if lease is None:
@@ -506,7 +516,7 @@ def main(args, cfg: RoadmapConfig) -> int:
     m = cfg.merger
     dbs = [PgDatabase(url, name=f"roadmap-{ident}-{role}") for role in ("write", "ctl", "read")]
     table = RegionTable(ident=ident, write_db=dbs[0], control_db=dbs[1], lease_s=m.lease_s,
-                        merger_cfg=m)
+                        merger_cfg=m, region_owners=dict(m.region_owners))
     try:
         with open_session(cfg.bus) as session:
             node = WorkerNode(session, table, dbs[2], ident=ident, renew_s=m.lease_renew_s,

@@ -55,13 +55,16 @@ def simulate_drives(
     camera: CameraModel | None = None,
     noise: sensors.NoiseProfile | None = None,
     progress=None,
+    first_vehicle: int = 0,
 ) -> list[Path]:
     """Write one drive log per (vehicle, drive) into out_dir/<vehicle>-d<drive>/.
 
     Vehicles of a world share its first route (other lanes of the same roads where the world has
     them), so their maps overlap; `route` (index or (N, 2) polyline) overrides it. Each drive
     differs in lane offset, speeds, sensor noise and looks. `noise` replaces the profile's
-    noise model (e.g. a harder one in a test); `progress(done, total)` is called per frame."""
+    noise model (e.g. a harder one in a test); `progress(done, total)` is called per frame.
+    Vehicles are numbered from first_vehicle (more vehicles of the same fleet, their own ids,
+    seeds and time slots)."""
     if profile not in sensors.PROFILES:
         raise WorldError(f"unknown profile {profile!r} (mapping | production)")
     camera = camera or camera_from_config(CameraConfig())
@@ -82,7 +85,7 @@ def simulate_drives(
             progress=progress,
         )
         for d in range(drives)
-        for v in range(vehicles)
+        for v in range(first_vehicle, first_vehicle + vehicles)
     ]
 
 

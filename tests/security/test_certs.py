@@ -90,3 +90,23 @@ def test_compose_secure_mounts_each_role_its_own_key_only():
         if role != "router":
             assert secure[name]["environment"]["ROADMAP_BUS__CONNECT"].startswith('["tls/')
     assert secure["zenoh-router"]["command"][:3] == ["router", "--listen", "tls/[::]:7447"]
+
+
+def test_acl_lets_vehicles_and_workers_use_the_region_ingest_keys():
+    """grid.routing = "region": vehicles query roadmap/region/<rx>/<ry>/ingest, PostgreSQL
+    workers declare it (and the fallback) and reply; localizers may not ingest there."""
+    from common import keys
+    from common.security import ROLE_RULES
+
+    def allowed(role, flow, message):
+        return {k for messages, exprs in ROLE_RULES[role][flow] if message in messages
+                for k in exprs}
+
+    assert keys.REGION_INGEST_ALL in allowed("vehicle", "ingress", "query")
+    assert keys.REGION_INGEST_ALL in allowed("vehicle", "egress", "reply")
+    assert keys.REGION_INGEST_ALL in allowed("merger", "ingress", "declare_queryable")
+    assert keys.REGION_INGEST_ALL in allowed("merger", "ingress", "reply")
+    assert keys.REGION_INGEST_ALL in allowed("merger", "egress", "query")
+    assert f"{keys.PREFIX}/alive/merger/*" in allowed("merger", "ingress",
+                                                       "declare_liveliness_subscriber")
+    assert not any("region" in k for k in allowed("localizer", "ingress", "query"))

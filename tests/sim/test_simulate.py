@@ -148,3 +148,16 @@ def test_labels_map_back_onto_the_world_through_the_logged_camera(world, tmp_pat
         ij = ((pts[cls == c] - [x0, y0]) / 0.1).astype(int)
         near = cv2.dilate((truth == c).astype(np.uint8), np.ones((3, 3), np.uint8))
         assert len(ij) > 1000 and near[ij[:, 1], ij[:, 0]].mean() > 0.97
+
+
+def test_more_vehicles_of_a_fleet_get_their_own_ids_and_drives(world, tmp_path):
+    """first_vehicle (the demo's extra vehicles): ids after the fleet's, on the given route, each
+    vehicle's drive as that vehicle would have driven it in a larger fleet."""
+    (extra,) = simulate_drives(world, tmp_path / "x", vehicles=1, seed=5, images=False,
+                               max_km=0.05, route=0, first_vehicle=3)
+    assert extra.name == "map-3-d0"
+    (fleet_v3,) = [p for p in simulate_drives(world, tmp_path / "f", vehicles=4, seed=5,
+                                              images=False, max_km=0.05, route=0)
+                   if p.name == "map-3-d0"]
+    a, b = DriveLog(extra).streams, DriveLog(fleet_v3).streams
+    assert all(np.array_equal(a[k], b[k]) for k in a)  # same seed and time slot per vehicle
