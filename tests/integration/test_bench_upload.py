@@ -28,3 +28,22 @@ def test_paired_differences_median_and_worst(tmp_path):
     assert s["upload_kb_per_km_driven"]["median"] == -793.0
     assert "ground_sign.precision" not in s  # no figure on either side: nothing to pair
     assert out["per_run"]["1"]["lane_line.precision"]["diff"] == -0.02
+
+
+def test_the_upload_section_runs_both_forms_on_the_same_drives(tmp_path):
+    """`python -m services.bench.upload --quick`: both forms' bytes, ingest CPU and maps in one
+    JSON; the sparse form far smaller and merging to (almost) the cells form's map."""
+    import subprocess
+    import sys
+
+    subprocess.run([sys.executable, "-m", "services.bench.upload", "--quick", "--out", tmp_path],
+                   check=True, capture_output=True, timeout=600)
+    up = json.loads((tmp_path / "upload.json").read_text())["upload"]
+    assert up["km_driven"] > 0.1
+    cells, sparse = up["cells"], up["sparse"]
+    assert sparse["kb_per_km_driven"] < 0.05 * cells["kb_per_km_driven"]
+    for form in (cells, sparse):
+        assert form["ingest_cpu_s_per_km"] > 0 and form["patches"] > 0
+        assert form["map"]["lane_line"]["precision"] > 0.9
+    agreement = up["sparse_vs_cells"]["map_agreement"]
+    assert min(agreement[c][m] for c in agreement for m in ("precision", "recall")) > 0.95

@@ -1,5 +1,5 @@
-"""A real ingest shard stand-in for the vehicle tests: acks IngestBatches and SparseBatches after a durable
-SQLite write.
+"""A real ingest shard stand-in for the vehicle tests: acks IngestBatches and SparseBatches
+after a durable SQLite write.
 
 `python -m tests.vehicle.ingest_peer --connect EP --db PATH [--shard 0] [--delay S]` declares
 `roadmap/ingest/s<shard>` (complete) and the liveliness token `roadmap/alive/merger/s<shard>`;
