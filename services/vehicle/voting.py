@@ -56,6 +56,32 @@ class VotingGrid:
             return
         self._add_keys(pack_keys(global_cells(points_xy_m), classes), None, t_ns)
 
+    def add_presence(self, points_xy_m: np.ndarray, classes: np.ndarray, t_ns: int = 0) -> None:
+        """One vote per distinct (cell, class) among the points: counts the calls (frames)
+        that saw a class in a cell, however many of their points fell there."""
+        if len(points_xy_m) == 0:
+            return
+        self._add_keys(np.unique(pack_keys(global_cells(points_xy_m), classes)), None, t_ns)
+
+    def drop_unconfirmed(self, seen: "VotingGrid", min_count: int, first_class: int) -> int:
+        """Remove the votes of every (cell, class >= first_class) that `seen` counts fewer than
+        `min_count` times (e.g. paint seen in fewer frames than that); -> keys removed."""
+        keys, _ = self.items()
+        target = (keys & ((1 << CLASS_BITS) - 1)) >= first_class
+        if not target.any():
+            return 0
+        seen_keys, seen_counts = seen.items()
+        wanted = keys[target]
+        count = np.zeros(len(wanted), np.int64)
+        if len(seen_keys):
+            at = np.minimum(np.searchsorted(seen_keys, wanted), len(seen_keys) - 1)
+            hit = seen_keys[at] == wanted
+            count[hit] = seen_counts[at[hit]]
+        drop = np.zeros(len(keys), bool)
+        drop[np.flatnonzero(target)[count < min_count]] = True
+        self._keys, self._counts = self._keys[~drop], self._counts[~drop]
+        return int(drop.sum())
+
     def merge(self, other: "VotingGrid") -> None:
         """Add another grid's votes to this one (e.g. a sealed delta into the whole local map)."""
         keys, counts = other.items()
