@@ -107,3 +107,22 @@ def test_wrong_votes_dtype_is_rejected():
     msg["body"]["votes"]["dtype"] = "<f4"
     with pytest.raises(CodecError):
         codec.decode(msgpack.packb(msg), expect=GridPatch)
+
+
+def test_paint_seen_in_too_few_frames_is_dropped_and_road_is_kept():
+    """The mapper's hallucination rule (VehicleMapper.min_paint_frames): paint votes of a cell
+    that fewer than 3 frames saw go, however many points one frame put there; road stays."""
+    votes, frames = VotingGrid(), VotingGrid()
+    lane, ghost, road = [0.05, 0.05], [0.15, 0.05], [0.25, 0.05]  # cells 0, 1, 2
+    for k in range(3):
+        pts = np.array([lane, lane] + ([ghost] * 9 if k == 0 else []) + [road])
+        cls = np.array([Cls.LANE_LINE] * 2 + [Cls.GROUND_SIGN] * (9 if k == 0 else 0)
+                       + [Cls.ROAD], np.uint8)
+        votes.add_points(pts, cls)
+        paint = cls >= Cls.LANE_LINE
+        frames.add_presence(pts[paint], cls[paint])
+    assert votes.drop_unconfirmed(frames, 3, first_class=Cls.LANE_LINE) == 1
+    raster = votes.label_raster(0.0, 0.0, 1, 3)
+    np.testing.assert_array_equal(raster[0], [Cls.LANE_LINE, 0, Cls.ROAD])
+    (p,) = votes.patches("v", "t", 0)
+    np.testing.assert_array_equal(p.votes[0], [0, 0, 6, 0, 0, 0])  # every vote of 3 frames
