@@ -213,6 +213,7 @@ class VehicleConfig:
     # a cell's paint of a class seen in fewer frames than this is not voted (sealed out): one
     # frame's hallucination never becomes a marking (1: off)
     min_paint_frames: int = 3
+    min_symbol_frames: int = 3  # ... for stop lines and ground signs
 
 
 @dataclass(frozen=True)

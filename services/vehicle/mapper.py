@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.camera import CameraModel, build_ipm_lookup
-from common.classes import Cls
+from common.classes import NUM_CLASSES, Cls
 from common.config import VehicleConfig
 from common.geometry import transform_points_2d
 from common.messages import GridPatch
@@ -53,6 +53,7 @@ class VehicleMapper:
         seal_every_frames: int = VehicleConfig.seal_every_frames,
         ipm_stride: int = VehicleConfig.ipm_stride,
         min_paint_frames: int = VehicleConfig.min_paint_frames,
+        min_symbol_frames: int = VehicleConfig.min_symbol_frames,
         patch_form=None,
     ):
         self.vehicle, self.traversal = vehicle, traversal
@@ -67,6 +68,9 @@ class VehicleMapper:
         # paint a cell got from fewer frames than this is not sealed: one frame's
         # hallucination never becomes a marking (1: every vote counts)
         self.min_paint_frames = int(min_paint_frames)
+        self.min_symbol_frames = int(min_symbol_frames)  # ... of stop lines and ground signs
+        self._min_frames = np.full(NUM_CLASSES, self.min_paint_frames, np.int64)
+        self._min_frames[[Cls.STOP_LINE, Cls.GROUND_SIGN]] = self.min_symbol_frames
         self.delta = VotingGrid()  # votes since the last seal
         self.paint_frames = VotingGrid()  # per (cell, paint class): frames that saw it, ditto
         self.grid = VotingGrid()  # the whole local map (sealed votes)
@@ -122,7 +126,7 @@ class VehicleMapper:
             self.poses[i] = pose
             world_xy = transform_points_2d(pose, frame.points_cm.astype(np.float64) / POINT_SCALE)
             self.delta.add_points(world_xy, frame.classes, frame.t_ns)
-            if self.min_paint_frames > 1:
+            if self._min_frames.max() > 1:
                 paint = frame.classes >= Cls.LANE_LINE
                 self.paint_frames.add_presence(world_xy[paint], frame.classes[paint])
             self._seal_poses.append(np.asarray(pose, dtype=np.float64))
@@ -159,8 +163,8 @@ class VehicleMapper:
         return len(self._buffer)
 
     def _seal(self) -> list:
-        if self.min_paint_frames > 1:  # paint seen in too few frames: no votes
-            self.delta.drop_unconfirmed(self.paint_frames, self.min_paint_frames,
+        if self._min_frames.max() > 1:  # paint seen in too few frames: no votes
+            self.delta.drop_unconfirmed(self.paint_frames, self._min_frames,
                                         first_class=Cls.LANE_LINE)
             self.paint_frames.clear()
         patches = self.delta.patches(self.vehicle, self.traversal, self.seq)

@@ -63,11 +63,13 @@ class VotingGrid:
             return
         self._add_keys(np.unique(pack_keys(global_cells(points_xy_m), classes)), None, t_ns)
 
-    def drop_unconfirmed(self, seen: "VotingGrid", min_count: int, first_class: int) -> int:
+    def drop_unconfirmed(self, seen: "VotingGrid", min_count, first_class: int) -> int:
         """Remove the votes of every (cell, class >= first_class) that `seen` counts fewer than
-        `min_count` times (e.g. paint seen in fewer frames than that); -> keys removed."""
+        `min_count` times (e.g. paint seen in fewer frames than that; one value, or an array of
+        one per class); -> keys removed."""
         keys, _ = self.items()
-        target = (keys & ((1 << CLASS_BITS) - 1)) >= first_class
+        classes = keys & ((1 << CLASS_BITS) - 1)
+        target = classes >= first_class
         if not target.any():
             return 0
         seen_keys, seen_counts = seen.items()
@@ -77,8 +79,10 @@ class VotingGrid:
             at = np.minimum(np.searchsorted(seen_keys, wanted), len(seen_keys) - 1)
             hit = seen_keys[at] == wanted
             count[hit] = seen_counts[at[hit]]
+        need = np.asarray(min_count)
+        need = need[classes[target]] if need.ndim else need
         drop = np.zeros(len(keys), bool)
-        drop[np.flatnonzero(target)[count < min_count]] = True
+        drop[np.flatnonzero(target)[count < need]] = True
         self._keys, self._counts = self._keys[~drop], self._counts[~drop]
         return int(drop.sum())
 
