@@ -2,7 +2,7 @@
 (Karlsruhe Lanelet2 and Argoverse 2 worlds, never trained on) and its speed on one core.
 
     python -m services.bench.segmentation --out DIR [--quick] [--frames N] [--model M.onnx]
-        [--no-border-net] [--flip off|average|alternate]
+        [--no-border-net] [--flip off|average|alternate] [--no-roi-rows]
         [--baseline B.onnx [--baseline-borders rule|none]]
         -> DIR/segmentation.json
 
@@ -20,7 +20,11 @@ full resolution (labels resized back from the model's input size), and also insi
 (`iou_ci90`; for the mean over worlds, each world's frames redrawn). The model runs as the
 product runs it: the rows above rays rising the model's sky margin above level (metadata
 `sky_margin_deg`, else 10 degrees; the nominal camera's `sky_rows`) are not segmented
-(`--sky-margin-deg D` for every model; -1: every row). Speed:
+(`--sky-margin-deg D` for every model; -1: every row), nor, as segmentation.roi_rows_only
+does, the rows above the car's IPM ROI less 80 rows of context (`first_row`; --no-roi-rows:
+every row below the sky), so that the full-frame IoU counts those rows as none: compare
+`iou_roi` across the two; and the mirror image is used as segmentation.flip says
+("alternate", one pass a frame; --flip for another). Speed:
 p50/p95 ms of `segment_model_size` (resize, network, upsampling, argmax, border refinement) at
 the model's input size on one core (one onnxruntime thread, OpenCV and the border
 classifier's BLAS held to one thread), and of the whole `segment()` call at full
