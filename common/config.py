@@ -214,6 +214,9 @@ class VehicleConfig:
     # frame's hallucination never becomes a marking (1: off)
     min_paint_frames: int = 3
     min_symbol_frames: int = 3  # ... for stop lines and ground signs
+    # a ground sign on a cell that this many frames saw as lane line is not voted (0: off):
+    # the model calls pieces of thick lane lines sign
+    symbol_lane_frames: int = 0
 
 
 @dataclass(frozen=True)

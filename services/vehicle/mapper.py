@@ -54,6 +54,7 @@ class VehicleMapper:
         ipm_stride: int = VehicleConfig.ipm_stride,
         min_paint_frames: int = VehicleConfig.min_paint_frames,
         min_symbol_frames: int = VehicleConfig.min_symbol_frames,
+        symbol_lane_frames: int = VehicleConfig.symbol_lane_frames,
         patch_form=None,
     ):
         self.vehicle, self.traversal = vehicle, traversal
@@ -71,6 +72,8 @@ class VehicleMapper:
         self.min_symbol_frames = int(min_symbol_frames)  # ... of stop lines and ground signs
         self._min_frames = np.full(NUM_CLASSES, self.min_paint_frames, np.int64)
         self._min_frames[[Cls.STOP_LINE, Cls.GROUND_SIGN]] = self.min_symbol_frames
+        # a ground sign on a cell that this many frames saw as lane line is not voted (0: off)
+        self.symbol_lane_frames = int(symbol_lane_frames)
         self.delta = VotingGrid()  # votes since the last seal
         self.paint_frames = VotingGrid()  # per (cell, paint class): frames that saw it, ditto
         self.grid = VotingGrid()  # the whole local map (sealed votes)
@@ -166,6 +169,10 @@ class VehicleMapper:
         if self._min_frames.max() > 1:  # paint seen in too few frames: no votes
             self.delta.drop_unconfirmed(self.paint_frames, self._min_frames,
                                         first_class=Cls.LANE_LINE)
+            if self.symbol_lane_frames > 0:
+                self.delta.drop_class_where(Cls.GROUND_SIGN, self.paint_frames,
+                                            other=Cls.LANE_LINE,
+                                            min_count=self.symbol_lane_frames)
             self.paint_frames.clear()
         patches = self.delta.patches(self.vehicle, self.traversal, self.seq)
         patches = self.patch_form.finish(patches, np.array(self._seal_poses).reshape(-1, 3))

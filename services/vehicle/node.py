@@ -59,6 +59,7 @@ def build_mapper(log: DriveLog, vehicle: str, cfg: RoadmapConfig):
         ipm_stride=v.ipm_stride,
         min_paint_frames=v.min_paint_frames,
         min_symbol_frames=v.min_symbol_frames,
+        symbol_lane_frames=v.symbol_lane_frames,
     )
     mapper.patch_form = get_patch_form(
         v.patch_form, ipm=mapper.ipm, camera_x_m=float(log.meta.camera.T_vehicle_camera[0, 3]),

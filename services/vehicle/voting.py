@@ -86,6 +86,23 @@ class VotingGrid:
         self._keys, self._counts = self._keys[~drop], self._counts[~drop]
         return int(drop.sum())
 
+    def drop_class_where(self, cls: int, seen: "VotingGrid", other: int, min_count: int) -> int:
+        """Remove the votes for class `cls` of every cell that `seen` counts `other` at least
+        `min_count` times in (e.g. a ground sign on a cell that frames saw as lane line);
+        -> keys removed."""
+        keys, _ = self.items()
+        hit = np.flatnonzero((keys & ((1 << CLASS_BITS) - 1)) == cls)
+        seen_keys, seen_counts = seen.items()
+        if not len(hit) or not len(seen_keys):
+            return 0
+        wanted = (keys[hit] >> CLASS_BITS << CLASS_BITS) | other
+        at = np.minimum(np.searchsorted(seen_keys, wanted), len(seen_keys) - 1)
+        drop = hit[(seen_keys[at] == wanted) & (seen_counts[at] >= min_count)]
+        keep = np.ones(len(keys), bool)
+        keep[drop] = False
+        self._keys, self._counts = self._keys[keep], self._counts[keep]
+        return len(drop)
+
     def merge(self, other: "VotingGrid") -> None:
         """Add another grid's votes to this one (e.g. a sealed delta into the whole local map)."""
         keys, counts = other.items()

@@ -126,3 +126,17 @@ def test_paint_seen_in_too_few_frames_is_dropped_and_road_is_kept():
     np.testing.assert_array_equal(raster[0], [Cls.LANE_LINE, 0, Cls.ROAD])
     (p,) = votes.patches("v", "t", 0)
     np.testing.assert_array_equal(p.votes[0], [0, 0, 6, 0, 0, 0])  # every vote of 3 frames
+
+
+def test_a_sign_on_a_cell_frames_saw_as_lane_line_is_dropped():
+    """VehicleMapper.symbol_lane_frames: the model calls pieces of thick lane lines ground sign;
+    a sign's votes go where frames saw lane line in the same cell, elsewhere they stay."""
+    votes, frames = VotingGrid(), VotingGrid()
+    pts = np.array([[0.05, 0.05]] * 3 + [[0.15, 0.05]] * 2)
+    cls = np.array([Cls.GROUND_SIGN] * 2 + [Cls.LANE_LINE] + [Cls.GROUND_SIGN] * 2, np.uint8)
+    votes.add_points(pts, cls)
+    frames.add_presence(pts, cls)
+    assert votes.drop_class_where(Cls.GROUND_SIGN, frames, other=Cls.LANE_LINE,
+                                  min_count=1) == 1
+    np.testing.assert_array_equal(votes.label_raster(0.0, 0.0, 1, 2)[0],
+                                  [Cls.LANE_LINE, Cls.GROUND_SIGN])
