@@ -100,6 +100,7 @@ class DemoConfig:
     # the SQLite demo sets grid.shard_map (when empty) to spread the regions its mapping drives
     # touch over the shards, heaviest first to the least loaded (not --small)
     spread_shards: bool = True
+    render_workers: int = 2  # drives rendered at once, one process each (frames for the model)
     repaint_drives_before: int = 2  # per vehicle, old paint
     repaint_drives_after: int = 5  # single traversals after the repaint, one at a time
     repaint_min_km: float = 0.3  # repaint drives reach the moved line (120-250 m into the route)
@@ -117,9 +118,10 @@ class SegmentationConfig:
     """Which segmenter the mapping vehicles and the production car run on camera frames
     (common.segmentation.segmenter_for), and how the ONNX one runs."""
 
-    # "truth": the simulator's corrupted true labels (simulated logs); "onnx": the packaged
-    # model (or model_path) on rendered frames (the demo then renders every drive's images)
-    kind: str = "truth"
+    # "onnx": the packaged model (or model_path) on rendered frames, the paper's pipeline (the
+    # demo renders every drive's images; a log without images falls back to "truth");
+    # "truth": the simulator's corrupted true labels, for tests and ablations
+    kind: str = "onnx"
     model_path: str = ""  # empty: common/models/roadseg.onnx shipped with the package
     intra_op_threads: int = 1
     # rows above the rays rising this far above level (degrees) show no road: labelled none,
@@ -129,7 +131,12 @@ class SegmentationConfig:
     border_net: bool = True  # false: its brightness rule, 1-2 ms a frame faster, lower IoU
     # the mirror image: "average" runs the network on image and mirror (twice the time),
     # "alternate" on one of them a frame in turn, "off" on the image (costs: MODEL_CARD.md)
-    flip: str = ""  # empty: the model's own; else off, average or alternate (FLIP_MODES)
+    # "alternate" (one pass a frame) is the default: two passes ("average", the packaged file's
+    # own) cost 1.5-1.7x the time, over the 15 ms a frame on one core (MODEL_CARD.md)
+    flip: str = "alternate"  # empty: the model's own; else off, average or alternate (FLIP_MODES)
+    # segment only the rows the role's IPM ROI reads (and 80 rows of context above it); the
+    # rows above are labelled none (the mapper's 3-11 m: 232 rows of 360 through the network)
+    roi_rows_only: bool = True
 
 
 @dataclass(frozen=True)
@@ -206,6 +213,18 @@ class VehicleConfig:
     truth_seed: int = 0  # GroundTruthSegmenter corruption seed (deterministic re-mapping)
     # "onnx": unsure paint votes nothing: fewer false paint votes, a few true ones lost
     paint_min_margin: float = 1.0  # logits a marking pixel's class must lead the next by (0: off)
+    # ... for stop lines and ground signs, which the model paints on plain asphalt and across
+    # junction lines: held-out ROI pixels far from any true one at 1 / 3 logits, stop line 3723
+    # / 1144, ground sign 190 / 0, with 93 / 73 and 90 / 68 % of the true ones kept
+    symbol_min_margin: float = 3.0
+    # a cell's paint of a class seen in fewer frames than this is not voted (sealed out): one
+    # frame's hallucination never becomes a marking (1: off)
+    min_paint_frames: int = 3
+    min_symbol_frames: int = 3  # ... for stop lines and ground signs
+    # a ground sign on a cell that this many frames saw as lane line is not voted (0: off):
+    # the model calls pieces of thick lane lines sign (seed 0 / 1 Karlsruhe demo drives
+    # replayed: false sign cells 55 / 65 -> 29 / 33, other classes unchanged)
+    symbol_lane_frames: int = 1
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,14 @@ from common.config import (
     MergerConfig,
     RoadmapConfig,
 )
-from common.segmentation import DEFAULT_MODEL, OnnxSegmenter, segmenter_for
+from common.segmentation import (
+    DEFAULT_MODEL,
+    OnnxSegmenter,
+    roi_first_row,
+    role_roi,
+    segmenter_for,
+    symbol_margins,
+)
 from services.localizer.ekf import PoseFilter
 from services.localizer.icp import Icp
 from services.localizer.init import CoarseSearch
@@ -91,8 +98,14 @@ class _Log:
         return 0
 
 
+def _truth_config() -> RoadmapConfig:
+    base = RoadmapConfig()
+    return dataclasses.replace(base, segmentation=dataclasses.replace(base.segmentation,
+                                                                     kind="truth"))
+
+
 def test_a_default_vehicle_mapper_is_the_product_mapper(camera):
-    cfg = RoadmapConfig()
+    cfg = _truth_config()  # the mapper's own defaults (the ONNX segmenter: below)
     product = build_mapper(_Log(camera), "veh-0", cfg)
     roi = cfg.roi  # required: the ROI's length follows from roi and vehicle.max_range_m
     default = VehicleMapper(
@@ -118,21 +131,25 @@ def test_a_default_merger_shard_is_the_product_shard():
 @pytest.mark.parametrize("role", ["vehicle", "localizer"])
 def test_the_truth_segmenter_of_each_role(role):
     """The corruption seed is the role's own (vehicle.truth_seed, localizer.truth_seed)."""
-    cfg = RoadmapConfig()
+    cfg = _truth_config()
     seed = getattr(cfg, role).truth_seed
     assert segmenter_for(cfg, role) == GroundTruthSegmenter(seed=seed)
 
 
 @pytest.mark.skipif(not DEFAULT_MODEL.exists(), reason="packaged model missing")
 def test_a_default_onnx_segmenter_is_the_product_segmenter(camera):
-    """The confidence gate is the role's own: the car's (localizer.paint_min_margin) is
-    OnnxSegmenter's default, the plain argmax; the mapping vehicles' is passed."""
-    base = RoadmapConfig()
-    cfg = dataclasses.replace(base, segmentation=dataclasses.replace(base.segmentation,
-                                                                     kind="onnx"))
-    assert_same(OnnxSegmenter(camera=camera), segmenter_for(cfg, "localizer", camera=camera),
-                "OnnxSegmenter")
-    vehicle = OnnxSegmenter(camera=camera, min_margin=cfg.vehicle.paint_min_margin)
+    """The default segmenter is the model. The confidence gate is the role's own: the car's
+    (localizer.paint_min_margin) is OnnxSegmenter's default, the plain argmax; the mapping
+    vehicles' is passed. Each role segments from the first row of its own IPM ROI."""
+    cfg = RoadmapConfig()
+    assert cfg.segmentation.kind == "onnx"
+    car_row = roi_first_row(camera, *role_roi(cfg, "localizer"))
+    assert_same(OnnxSegmenter(camera=camera, first_row=car_row, flip=cfg.segmentation.flip),
+                segmenter_for(cfg, "localizer", camera=camera), "OnnxSegmenter")
+    vehicle = OnnxSegmenter(camera=camera, min_margin=cfg.vehicle.paint_min_margin,
+                            flip=cfg.segmentation.flip,
+                            class_min_margin=symbol_margins(cfg, "vehicle"),
+                            first_row=roi_first_row(camera, *role_roi(cfg, "vehicle")))
     assert_same(vehicle, segmenter_for(cfg, "vehicle", camera=camera), "OnnxSegmenter")
 
 

@@ -13,6 +13,7 @@ argmax, confidence)."""
 import importlib
 import logging
 
+from common.classes import Cls
 from common.config import SEGMENTER_KINDS
 from common.errors import ConfigError
 from common.segmentation.base import Segmenter
@@ -30,7 +31,8 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["DEFAULT_MODEL", "DEFAULT_SKY_MARGIN_DEG", "META_KEY", "ROLES", "SEGMENTER_KINDS",
            "OnnxSegmenter", "Segmenter", "configured_onnx", "get_segmenter", "model_flip_mode",
-           "segmenter_for", "session_metadata", "sky_rows_of"]
+           "role_roi", "roi_first_row", "segmenter_for", "session_metadata", "sky_rows_of",
+           "symbol_margins"]
 
 ROLES = ("vehicle", "localizer")  # who segments: the mapping vehicles or the production car
 # The truth strategy is the simulator's (it needs a simulated log's true labels), imported only
@@ -51,7 +53,8 @@ def get_segmenter(kind: str = "onnx", **kw) -> Segmenter:
     raise ConfigError(f"unknown segmenter {kind!r} (expected 'onnx' or 'truth')")
 
 
-def configured_onnx(seg, *, min_margin: float = 0.0, camera=None) -> OnnxSegmenter:
+def configured_onnx(seg, *, min_margin: float = 0.0, camera=None, first_row: int = 0,
+                    class_min_margin: dict[int, float] | None = None) -> OnnxSegmenter:
     """The ONNX segmenter a SegmentationConfig `seg` names (the packaged model when its
     model_path is empty), with the caller's `min_margin`: the mapping vehicles and the car
     each set their own (vehicle.paint_min_margin, localizer.paint_min_margin). Given the
@@ -60,10 +63,11 @@ def configured_onnx(seg, *, min_margin: float = 0.0, camera=None) -> OnnxSegment
     (OnnxSegmenter's camera and sky_margin_deg). The model's learned border classifier runs
     if it has one, unless `seg.border_net` is off (then its brightness rule), and the mirror
     image is used as the model asks (flip averaging or alternation), unless `seg.flip` names
-    another of FLIP_MODES."""
+    another of FLIP_MODES. `first_row`: the first image row the caller uses (roi_first_row;
+    0: every row below the sky)."""
     return get_segmenter("onnx", model_path=seg.model_path,
                          intra_op_threads=seg.intra_op_threads, min_margin=min_margin,
-                         camera=camera,
+                         class_min_margin=class_min_margin, camera=camera, first_row=first_row,
                          sky_margin_deg=None if camera is None else seg.sky_margin_deg,
                          border_net=None if seg.border_net else False,
                          flip=seg.flip or None)
@@ -84,4 +88,38 @@ def segmenter_for(cfg, role: str, *, camera=None, images: bool = True) -> Segmen
         kind = "truth"
     if kind == "truth":
         return get_segmenter("truth", seed=role_cfg.truth_seed)
-    return configured_onnx(cfg.segmentation, min_margin=role_cfg.paint_min_margin, camera=camera)
+    first_row = (roi_first_row(camera, *role_roi(cfg, role))
+                 if camera is not None and cfg.segmentation.roi_rows_only else 0)
+    return configured_onnx(cfg.segmentation, min_margin=role_cfg.paint_min_margin, camera=camera,
+                           first_row=first_row, class_min_margin=symbol_margins(cfg, role))
+
+
+def symbol_margins(cfg, role: str) -> dict[int, float] | None:
+    """The mapping vehicles' own margin for stop lines and ground signs
+    (vehicle.symbol_min_margin), the classes the model paints where there are none; the car
+    keeps one margin for every class."""
+    if role != "vehicle":
+        return None
+    m = cfg.vehicle.symbol_min_margin
+    return {int(Cls.STOP_LINE): m, int(Cls.GROUND_SIGN): m}
+
+
+def role_roi(cfg, role: str) -> tuple[float, float, float]:
+    """(x_min_m, length_m, width_m) of the IPM ROI `role` turns into points: the car's is
+    cfg.roi; the mapping vehicles' ends at vehicle.max_range_m (services/vehicle/node.py)."""
+    roi = cfg.roi
+    length = roi.length_m
+    if role == "vehicle":
+        length = min(length, cfg.vehicle.max_range_m - roi.x_min_m)
+    return roi.x_min_m, length, roi.width_m
+
+
+def roi_first_row(camera, x_min_m: float, length_m: float, width_m: float) -> int:
+    """The first image row with a pixel in the IPM ROI (common.camera.build_ipm_lookup): no
+    stage reads the labels above it."""
+    from common.camera import build_ipm_lookup
+
+    ipm = build_ipm_lookup(camera, x_min_m=x_min_m, length_m=length_m, width_m=width_m)
+    if not len(ipm.pixel_index):
+        return 0
+    return int(ipm.pixel_index.min()) // camera.width

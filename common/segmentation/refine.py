@@ -241,16 +241,18 @@ def border_features(gray: np.ndarray, labels: np.ndarray, scores: np.ndarray,
     return out.T
 
 
-def unsure_paint_unknown(score_at, labels: np.ndarray, min_margin: float):
+def unsure_paint_unknown(score_at, labels: np.ndarray, min_margin):
     """labels (H, W) with the marking pixels whose best score leads the second best by less
-    than min_margin set to 0 (unknown), in place. `score_at(ys, xs)` gives the (C, N) scores of
-    pixels (ys, xs) (the logits as upsampled for the argmax). Only the marking pixels (a few
-    per cent of a frame) are gathered, so it costs ~0.3 ms at 640x360."""
+    than min_margin set to 0 (unknown), in place; `min_margin` is one value for every class or
+    an array of one per class (indexed by the label). `score_at(ys, xs)` gives the (C, N)
+    scores of pixels (ys, xs) (the logits as upsampled for the argmax). Only the marking pixels
+    (a few per cent of a frame) are gathered, so it costs ~0.3 ms at 640x360."""
     ys, xs = np.nonzero(labels >= Cls.LANE_LINE)
     if len(ys):
         picked = score_at(ys, xs)
         if len(picked) < 2:  # a one-channel head has no runner-up to lead
             return labels
-        unsure = lead_of(picked) < min_margin
+        margin = np.asarray(min_margin, np.float32)
+        unsure = lead_of(picked) < (margin[labels[ys, xs]] if margin.ndim else margin)
         labels[ys[unsure], xs[unsure]] = Cls.NONE
     return labels

@@ -2,7 +2,7 @@
 (Karlsruhe Lanelet2 and Argoverse 2 worlds, never trained on) and its speed on one core.
 
     python -m services.bench.segmentation --out DIR [--quick] [--frames N] [--model M.onnx]
-        [--no-border-net] [--flip off|average|alternate]
+        [--no-border-net] [--flip off|average|alternate] [--no-roi-rows]
         [--baseline B.onnx [--baseline-borders rule|none]]
         -> DIR/segmentation.json
 
@@ -20,7 +20,11 @@ full resolution (labels resized back from the model's input size), and also insi
 (`iou_ci90`; for the mean over worlds, each world's frames redrawn). The model runs as the
 product runs it: the rows above rays rising the model's sky margin above level (metadata
 `sky_margin_deg`, else 10 degrees; the nominal camera's `sky_rows`) are not segmented
-(`--sky-margin-deg D` for every model; -1: every row). Speed:
+(`--sky-margin-deg D` for every model; -1: every row), nor, as segmentation.roi_rows_only
+does, the rows above the car's IPM ROI less 80 rows of context (`first_row`; --no-roi-rows:
+every row below the sky), so that the full-frame IoU counts those rows as none: compare
+`iou_roi` across the two; and the mirror image is used as segmentation.flip says
+("alternate", one pass a frame; --flip for another). Speed:
 p50/p95 ms of `segment_model_size` (resize, network, upsampling, argmax, border refinement) at
 the model's input size on one core (one onnxruntime thread, OpenCV and the border
 classifier's BLAS held to one thread), and of the whole `segment()` call at full
@@ -51,8 +55,8 @@ import numpy as np
 
 from common.camera import build_ipm_lookup, camera_from_config
 from common.classes import NAMES, Cls
-from common.config import FLIP_MODES, CameraConfig, RoiConfig, VehicleConfig
-from common.segmentation import DEFAULT_MODEL, get_segmenter
+from common.config import FLIP_MODES, CameraConfig, RoiConfig, SegmentationConfig, VehicleConfig
+from common.segmentation import DEFAULT_MODEL, get_segmenter, roi_first_row
 from services.bench.heldout import (
     CLASSES,
     IouAccumulator,
@@ -192,7 +196,8 @@ def _parts_ms(seg, small: np.ndarray) -> dict:
 def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES,
         baseline_path: str | None = None, baseline_borders: str = "model",
         sky_margin_deg: float | None = None, border_net: bool | None = None,
-        flip: str | None = None, seed: int = 1) -> dict:
+        flip: str | None = None, seed: int = 1,
+        roi_rows: bool = SegmentationConfig.roi_rows_only) -> dict:
     """seed: the draw of held-out frames (poses, cars, vibration) in every world; 1 is the
     benchmark's, another a fresh draw that checks a result found on it. border_net: None, the
     model's learned border classifier if it has one (as the product runs it); False, its
@@ -203,9 +208,10 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
         raise FileNotFoundError(
             f"no held-out worlds under {SHARED} (Lanelet2 Karlsruhe, Argoverse 2 logs): put the "
             "shared data at ../shared/data or set ROADMAP_SHARED_DATA")
+    flip = flip or SegmentationConfig.flip or None  # as the product runs it
     seg, gated, baseline = _segmenters(model_path, baseline_path, baseline_borders,
                                        sky_margin_deg=sky_margin_deg, border_net=border_net,
-                                       flip=flip)
+                                       flip=flip, roi_rows=roi_rows)
     rng, paired_rng = np.random.default_rng(0), np.random.default_rng(1)
     report = _header(seg, model_path, seed)
     timed = []  # route frames for the speed measurement
@@ -240,11 +246,17 @@ def run(quick: bool = False, model_path: str | None = None, frames: int = FRAMES
 
 
 def _segmenters(model_path, baseline_path, baseline_borders: str, *, sky_margin_deg,
-                border_net, flip):
+                border_net, flip, roi_rows: bool = SegmentationConfig.roi_rows_only):
     """The model as the product runs it, the same gated as the mapping vehicles run it (paint
     it is unsure of left unknown), and the baseline (None without baseline_path)."""
-    # the rows the product leaves out for render_heldout's camera (None: each model's own)
-    sky = {"camera": camera_from_config(CameraConfig()), "sky_margin_deg": sky_margin_deg}
+    # the rows the product leaves out for render_heldout's camera (None: each model's own),
+    # and with roi_rows (segmentation.roi_rows_only, as the product) those above the car's
+    # IPM ROI, the larger of the two roles' (cfg.roi: 3-15 m ahead)
+    camera = camera_from_config(CameraConfig())
+    roi = RoiConfig()
+    first_row = (roi_first_row(camera, roi.x_min_m, roi.length_m, roi.width_m)
+                 if roi_rows else 0)
+    sky = {"camera": camera, "sky_margin_deg": sky_margin_deg, "first_row": first_row}
     seg = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, **sky,
                         border_net=border_net, flip=flip)
     gated = get_segmenter("onnx", model_path=model_path, intra_op_threads=1, **sky,
@@ -267,6 +279,7 @@ def _header(seg, model_path, seed: int) -> dict:
         "border_net": seg.border_net is not None,  # by the learned classifier instead
         "flip": seg.flip,  # what the network does with the mirror image (FLIP_MODES)
         "sky_margin_deg": seg.sky_margin_deg, "sky_rows": seg.sky_rows,  # rows not segmented
+        "first_row": seg.first_row,  # the ROI's first row (0: every row below the sky)
         "python": platform.python_version(), "onnxruntime": onnxruntime.__version__,
         **cpu_description(),  # the speed depends on the vector units as much as on the model
         "seed": seed, "targets": TARGETS, "worlds": {},
@@ -361,6 +374,11 @@ def main(argv=None) -> int:
                              "average (a second pass, averaged) or alternate (one pass, on the "
                              "image and on its mirror in turn) (default: the model's own, as "
                              "segmentation.flip does)")
+    parser.add_argument("--roi-rows", action=argparse.BooleanOptionalAction,
+                        default=SegmentationConfig.roi_rows_only,
+                        help="segment only the rows of the IPM ROI (3-15 m ahead) and 80 above, "
+                             "as segmentation.roi_rows_only does (default); --no-roi-rows: every "
+                             "row below the sky (full-frame IoU)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     if not heldout_worlds():  # a JSON of nulls would read as a result
@@ -369,7 +387,7 @@ def main(argv=None) -> int:
                      "ROADMAP_SHARED_DATA; nothing written", SHARED)
         return 2
     report = run(args.quick, args.model, args.frames, args.baseline, args.baseline_borders,
-                 args.sky_margin_deg, args.border_net, args.flip, args.seed)
+                 args.sky_margin_deg, args.border_net, args.flip, args.seed, args.roi_rows)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "segmentation.json").write_text(json.dumps(report, indent=2))

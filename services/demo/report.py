@@ -150,21 +150,31 @@ def map_section(maps: MapRasters, km_mapped: float) -> dict:
 
 
 def segmentation_section(cfg: RoadmapConfig, log_path: Path, n_frames: int = 20) -> dict:
-    """IoU of the segmenter the fleet used, on frames of the production drive."""
+    """IoU of the segmenter the fleet used, on frames of the production drive, over the pixels
+    of the mapping vehicles' IPM ROI (the only ones they turn into votes; the ONNX segmenter
+    leaves the rows above it unsegmented: segmentation.roi_rows_only)."""
+    from common.camera import build_ipm_lookup
+    from common.segmentation import role_roi
+
     log = DriveLog(log_path)
     seg = fleet_segmenter(cfg, log.meta.camera)
+    x_min_m, length_m, width_m = role_roi(cfg, "vehicle")
+    ipm = build_ipm_lookup(log.meta.camera, x_min_m=x_min_m, length_m=length_m, width_m=width_m)
     inter, union, n_true, ms = np.zeros(6), np.zeros(6), np.zeros(6), []
     for i in np.linspace(0, len(log) - 1, min(n_frames, len(log))).astype(int):
         truth, image = log.labels(int(i)), log.image(int(i))
         t = time.perf_counter()
         pred = seg.segment(image, truth)
         ms.append((time.perf_counter() - t) * 1000.0)
+        pred, truth = pred.reshape(-1)[ipm.pixel_index], truth.reshape(-1)[ipm.pixel_index]
         for c in range(2, 6):
             n_true[c] += np.sum(truth == c)
             inter[c] += np.sum((pred == c) & (truth == c))
             union[c] += np.sum((pred == c) | (truth == c))
     names = {2: "lane_line", 3: "stop_line", 4: "crosswalk", 5: "ground_sign"}
-    return {"model": seg.name,
+    return {"kind": cfg.segmentation.kind, "model": seg.name,
+            "flip": getattr(seg, "flip", None), "first_row": getattr(seg, "first_row", None),
+            "iou_pixels": "mapping vehicles' IPM ROI",
             "iou": {n: (float(inter[c] / union[c]) if n_true[c] else None)
                     for c, n in names.items()},
             "ms_p50": float(np.percentile(ms, 50)) if ms else None,

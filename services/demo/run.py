@@ -119,33 +119,43 @@ class DemoRun:
         return worlds.load_world(self.args.world, seed=self.args.seed)
 
     def _simulate(self) -> dict:
+        """Every drive's log, rendered demo.render_workers at a time (camera frames for the
+        model: most of a demo's time), with a progress line per drive every 10 s."""
         sim = _require("services.sim.simulate", "the simulator (services.sim.simulate)")
         drives, seed, m = self.out / "drives", self.args.seed, self.args.vehicles
         kw = {"images": self.d.images or self.onnx, "max_km": self.max_km}
-        logs = {}
+        groups = {}
         if self.args.scenario == "repaint":
             worlds = _require("services.sim.worlds", "the simulator (services.sim.worlds)")
             self.world_after = worlds.repaint(self.world, seed)
-            logs["mapping"] = sim.simulate_drives(self.world, drives / "before", vehicles=m,
-                                                  drives=self.d.repaint_drives_before,
-                                                  profile="mapping", seed=seed, **kw)
-            logs["after"] = sim.simulate_drives(self.world_after, drives / "after", vehicles=1,
-                                                drives=self.d.repaint_drives_after,
-                                                profile="mapping", seed=seed + 500, **kw)
+            groups["mapping"] = sim.drive_jobs(self.world, drives / "before", vehicles=m,
+                                               drives=self.d.repaint_drives_before,
+                                               profile="mapping", seed=seed, **kw)
+            groups["after"] = sim.drive_jobs(self.world_after, drives / "after", vehicles=1,
+                                             drives=self.d.repaint_drives_after,
+                                             profile="mapping", seed=seed + 500, **kw)
         else:
-            logs["mapping"] = sim.simulate_drives(self.world, drives / "mapping", vehicles=m,
-                                                  drives=self.d.drives, profile="mapping",
-                                                  seed=seed, **kw)
-            logs["mapping"] += self._spread_drives(sim, drives / "mapping", kw)
-        world_now = self.world_after or self.world
-        logs["production"] = sim.simulate_drives(
-            world_now, drives / "production", vehicles=1, drives=1, profile="production",
-            seed=seed + 1000, images=self.onnx, max_km=self.max_km)[0]
+            groups["mapping"] = sim.drive_jobs(self.world, drives / "mapping", vehicles=m,
+                                               drives=self.d.drives, profile="mapping",
+                                               seed=seed, **kw)
+            groups["spread"] = self._spread_drives(sim, drives / "mapping", kw)
+        groups["production"] = sim.drive_jobs(
+            self.world_after or self.world, drives / "production", vehicles=1, drives=1,
+            profile="production", seed=seed + 1000, images=self.onnx, max_km=self.max_km)
+        jobs = [job for group in groups.values() for job in group]
+        for job in jobs:
+            if job["images"]:
+                job["progress"] = _RenderProgress(f"{job['profile']} drive v{job['v']} "
+                                                  f"d{job['d']}")
+        paths = iter(sim.run_drives(jobs, workers=self.d.render_workers))
+        logs = {name: [next(paths) for _ in group] for name, group in groups.items()}
+        logs["production"] = logs["production"][0]
+        logs["mapping"] += logs.pop("spread", [])
         logger.info("drive logs: %d mapping, %d after repaint, 1 production",
                     len(logs["mapping"]), len(logs.get("after", [])))
         return logs
 
-    def _spread_drives(self, sim, out: Path, kw: dict) -> list[Path]:
+    def _spread_drives(self, sim, out: Path, kw: dict) -> list[dict]:
         """demo.spread_vehicles more mapping vehicles (ids after the fleet's) on the route
         reaching most regions the shared route does not, when that one touches fewer regions
         than there are shards (services/demo/spread.py)."""
@@ -160,9 +170,9 @@ class DemoRun:
         logger.info("fleet: %d more vehicles on route %d (regions %s) so every shard has work",
                     n, route, sorted(spread.route_regions(routes[route], self.max_km)))
         self.spread.update(vehicles=n, route=route)
-        return sim.simulate_drives(self.world, out, vehicles=n, drives=self.d.drives,
-                                   profile="mapping", seed=self.args.seed, route=route,
-                                   first_vehicle=self.args.vehicles, **kw)
+        return sim.drive_jobs(self.world, out, vehicles=n, drives=self.d.drives,
+                              profile="mapping", seed=self.args.seed, route=route,
+                              first_vehicle=self.args.vehicles, **kw)
 
     def _spread_shards(self, logs: dict) -> None:
         """grid.shard_map spreading the regions the mapping drives touch over the SQLite shards
@@ -252,10 +262,19 @@ class DemoRun:
                                    f"{self.d.vehicle_timeout_s} s")
             if pending and time.monotonic() > next_report:
                 applied = _applied(run_fetch(sup.router_endpoint, "stats", self.args.shards))
-                logger.info("mapping: %d of %d vehicles still running, shards applied %d patches",
-                            len(pending), len(started), applied)
+                logger.info("mapping: %d of %d vehicles still running (%s), shards applied %d "
+                            "patches", len(pending), len(started),
+                            ", ".join(self._frames_done(n) for n in pending), applied)
                 next_report = time.monotonic() + 10.0
             time.sleep(0.2)
+
+    def _frames_done(self, vehicle: str) -> str:
+        """'frame i of N' from the vehicle's STATE/progress.json (services/vehicle/node.py)."""
+        try:
+            p = json.loads((self._state(vehicle) / "progress.json").read_text())
+            return f"frame {p['frames_done']} of {p['frames']}"
+        except (OSError, ValueError, KeyError):
+            return "starting"
 
     def _vehicle_done(self, name: str, log: Path) -> None:
         """A finished vehicle's outputs are there (the report reads them)."""
@@ -399,6 +418,26 @@ class DemoRun:
         if track is not None:
             figures.trajectory_figures(maps.raw, maps.mosaic.to_cells, track, self.out)
         return result
+
+
+class _RenderProgress:
+    """simulate_drive's progress(done, total) per frame -> a console line every REPORT_S
+    seconds and at the end of the drive, while its camera frames are rendered."""
+
+    REPORT_S = 10.0
+
+    def __init__(self, what: str):
+        self.what, self.t0, self.next = what, 0.0, 0.0
+
+    def __call__(self, done: int, total: int) -> None:
+        now = time.monotonic()
+        if done == 1:
+            self.t0, self.next = now, now + self.REPORT_S
+        if now >= self.next or done == total:
+            rate = done / max(now - self.t0, 1e-9)
+            logger.info("rendering %s: frame %d of %d (%.0f %%, %.1f frames/s)",
+                        self.what, done, total, 100.0 * done / total, rate)
+            self.next = now + self.REPORT_S
 
 
 def _rounds(logs: list[Path]) -> list[list[Path]]:

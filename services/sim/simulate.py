@@ -56,6 +56,7 @@ def simulate_drives(
     noise: sensors.NoiseProfile | None = None,
     progress=None,
     first_vehicle: int = 0,
+    workers: int = 1,
 ) -> list[Path]:
     """Write one drive log per (vehicle, drive) into out_dir/<vehicle>-d<drive>/.
 
@@ -64,29 +65,53 @@ def simulate_drives(
     differs in lane offset, speeds, sensor noise and looks. `noise` replaces the profile's
     noise model (e.g. a harder one in a test); `progress(done, total)` is called per frame.
     Vehicles are numbered from first_vehicle (more vehicles of the same fleet, their own ids,
-    seeds and time slots)."""
+    seeds and time slots). `workers` > 1 renders that many drives at once in forked processes
+    (each drive has its own seed: the same logs as one at a time; progress is then called in
+    the workers)."""
+    return run_drives(drive_jobs(world, out_dir, vehicles=vehicles, drives=drives,
+                                 profile=profile, seed=seed, images=images, max_km=max_km,
+                                 route=route, camera=camera, noise=noise, progress=progress,
+                                 first_vehicle=first_vehicle),
+                      workers=workers)
+
+
+def drive_jobs(world: World, out_dir, *, vehicles: int = 1, drives: int = 1,
+               profile: str = "mapping", seed: int = 0, images: bool = True,
+               max_km: float | None = None, route=None, camera: CameraModel | None = None,
+               noise: sensors.NoiseProfile | None = None, progress=None,
+               first_vehicle: int = 0) -> list[dict]:
+    """simulate_drives' drives as jobs for run_drives (to render the drives of several calls
+    together)."""
     if profile not in sensors.PROFILES:
         raise WorldError(f"unknown profile {profile!r} (mapping | production)")
     camera = camera or camera_from_config(CameraConfig())
-    return [
-        _drive_one(
-            world,
-            Path(out_dir),
-            v=v,
-            d=d,
-            vehicles=vehicles,
-            profile=profile,
-            seed=seed,
-            images=images,
-            max_km=max_km,
-            route=route,
-            camera=camera,
-            noise=noise or sensors.PROFILES[profile],
-            progress=progress,
-        )
-        for d in range(drives)
-        for v in range(first_vehicle, first_vehicle + vehicles)
-    ]
+    return [dict(world=world, out_dir=Path(out_dir), v=v, d=d, vehicles=vehicles,
+                 profile=profile, seed=seed, images=images, max_km=max_km, route=route,
+                 camera=camera, noise=noise or sensors.PROFILES[profile], progress=progress)
+            for d in range(drives) for v in range(first_vehicle, first_vehicle + vehicles)]
+
+
+_JOBS: list[dict] = []  # the drives of run_drives, inherited by its forked workers
+
+
+def run_drives(jobs: list[dict], workers: int = 1) -> list[Path]:
+    """The drive logs of drive_jobs' jobs, in order; `workers` > 1: that many at once in forked
+    processes (the jobs reach them by fork, unpickled: a world's markings are large)."""
+    if workers <= 1 or len(jobs) <= 1:
+        return [_drive_one(**job) for job in jobs]
+    import multiprocessing
+
+    global _JOBS
+    _JOBS = jobs
+    try:
+        with multiprocessing.get_context("fork").Pool(min(workers, len(jobs))) as pool:
+            return pool.map(_job, range(len(jobs)), chunksize=1)
+    finally:
+        _JOBS = []
+
+
+def _job(i: int) -> Path:
+    return _drive_one(**_JOBS[i])
 
 
 def _drive_one(

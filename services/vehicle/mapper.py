@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.camera import CameraModel, build_ipm_lookup
+from common.classes import NUM_CLASSES, Cls
 from common.config import VehicleConfig
 from common.geometry import transform_points_2d
 from common.messages import GridPatch
@@ -51,6 +52,9 @@ class VehicleMapper:
         estimator: PoseEstimator | None = None,
         seal_every_frames: int = VehicleConfig.seal_every_frames,
         ipm_stride: int = VehicleConfig.ipm_stride,
+        min_paint_frames: int = VehicleConfig.min_paint_frames,
+        min_symbol_frames: int = VehicleConfig.min_symbol_frames,
+        symbol_lane_frames: int = VehicleConfig.symbol_lane_frames,
         patch_form=None,
     ):
         self.vehicle, self.traversal = vehicle, traversal
@@ -62,7 +66,16 @@ class VehicleMapper:
         self.seal_every_frames = seal_every_frames
         self.ipm_stride = ipm_stride
         self.patch_form = patch_form or CellsForm()
+        # paint a cell got from fewer frames than this is not sealed: one frame's
+        # hallucination never becomes a marking (1: every vote counts)
+        self.min_paint_frames = int(min_paint_frames)
+        self.min_symbol_frames = int(min_symbol_frames)  # ... of stop lines and ground signs
+        self._min_frames = np.full(NUM_CLASSES, self.min_paint_frames, np.int64)
+        self._min_frames[[Cls.STOP_LINE, Cls.GROUND_SIGN]] = self.min_symbol_frames
+        # a ground sign on a cell that this many frames saw as lane line is not voted (0: off)
+        self.symbol_lane_frames = int(symbol_lane_frames)
         self.delta = VotingGrid()  # votes since the last seal
+        self.paint_frames = VotingGrid()  # per (cell, paint class): frames that saw it, ditto
         self.grid = VotingGrid()  # the whole local map (sealed votes)
         self.poses: dict[int, np.ndarray] = {}  # committed optimized poses by frame index
         self.seq = 0
@@ -116,6 +129,9 @@ class VehicleMapper:
             self.poses[i] = pose
             world_xy = transform_points_2d(pose, frame.points_cm.astype(np.float64) / POINT_SCALE)
             self.delta.add_points(world_xy, frame.classes, frame.t_ns)
+            if self._min_frames.max() > 1:
+                paint = frame.classes >= Cls.LANE_LINE
+                self.paint_frames.add_presence(world_xy[paint], frame.classes[paint])
             self._seal_poses.append(np.asarray(pose, dtype=np.float64))
             self._committed += 1
             if self._committed % self.seal_every_frames == 0:
@@ -150,6 +166,14 @@ class VehicleMapper:
         return len(self._buffer)
 
     def _seal(self) -> list:
+        if self._min_frames.max() > 1:  # paint seen in too few frames: no votes
+            self.delta.drop_unconfirmed(self.paint_frames, self._min_frames,
+                                        first_class=Cls.LANE_LINE)
+            if self.symbol_lane_frames > 0:
+                self.delta.drop_class_where(Cls.GROUND_SIGN, self.paint_frames,
+                                            other=Cls.LANE_LINE,
+                                            min_count=self.symbol_lane_frames)
+            self.paint_frames.clear()
         patches = self.delta.patches(self.vehicle, self.traversal, self.seq)
         patches = self.patch_form.finish(patches, np.array(self._seal_poses).reshape(-1, 3))
         self.grid.merge(self.delta)

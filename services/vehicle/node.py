@@ -9,6 +9,7 @@ Writes STATE/summary.json (counters), STATE/poses.npz and STATE/trajectory.tum (
 pose-graph poses), STATE/local_map.npz and STATE/config.toml (services/vehicle/outputs.py); the
 accuracy of poses and map is the evaluation harness's (services/eval/mapping.py)."""
 
+import json
 import logging
 import math
 import threading
@@ -34,6 +35,7 @@ from services.vehicle.patchform import get_patch_form
 logger = logging.getLogger(__name__)
 
 STAGES = ("segmentation", "ipm", "pose_graph", "voting", "outbox")
+PROGRESS_S = 5.0  # how often a mapping run writes STATE/progress.json
 
 
 def build_mapper(log: DriveLog, vehicle: str, cfg: RoadmapConfig):
@@ -55,6 +57,9 @@ def build_mapper(log: DriveLog, vehicle: str, cfg: RoadmapConfig):
         seal_every_frames=(v.sparse_seal_every_frames if v.patch_form == "sparse"
                            else v.seal_every_frames),
         ipm_stride=v.ipm_stride,
+        min_paint_frames=v.min_paint_frames,
+        min_symbol_frames=v.min_symbol_frames,
+        symbol_lane_frames=v.symbol_lane_frames,
     )
     mapper.patch_form = get_patch_form(
         v.patch_form, ipm=mapper.ipm, camera_x_m=float(log.meta.camera.T_vehicle_camera[0, 3]),
@@ -108,13 +113,18 @@ class StageTimer:
 
 
 def map_log(
-    log: DriveLog, mapper: VehicleMapper, on_patches, stop: threading.Event, timer: StageTimer
+    log: DriveLog, mapper: VehicleMapper, on_patches, stop: threading.Event, timer: StageTimer,
+    progress=None,
 ) -> bool:
-    """Replay and map the whole log; on_patches(list) gets every sealed batch. False if stopped."""
+    """Replay and map the whole log; on_patches(list) gets every sealed batch, `progress(done,
+    total)` (if given) every frame before it is mapped. False if stopped."""
     replay = Replay(log, mapper)
-    for i, t_ns in enumerate(log.streams["frame_t_ns"]):
+    frames_t_ns = log.streams["frame_t_ns"]
+    for i, t_ns in enumerate(frames_t_ns):
         if stop.is_set():
             return False
+        if progress is not None:
+            progress(i, len(frames_t_ns))
         replay.sensors_until(int(t_ns))
         labels = timer.time("segmentation", mapper.segment, log.image(i), log.labels(i))
         pts, cls = timer.time("ipm", mapper.inverse_perspective, labels)
@@ -269,6 +279,7 @@ class VehicleRun:
         self.finished = self.stopped_upload = False
         self.map_s = self.pending = None
         self.t0 = time.perf_counter()
+        self._next_progress = 0.0
 
     def on_patches(self, patches: list[GridPatch]) -> None:
         """Sealed patches into the outbox (sequences sealed before a restart are there already),
@@ -281,13 +292,25 @@ class VehicleRun:
             self.outbox.set_sealed(traversal, self.mapper.seq)
         self.uploader.wake.set()
 
+    def progress(self, done: int, total: int) -> None:
+        """STATE/progress.json every PROGRESS_S seconds while mapping (roadmap demo shows it)."""
+        now = time.perf_counter()
+        if now < self._next_progress and done:
+            return
+        self._next_progress = now + PROGRESS_S
+        logger.info("mapping frame %d of %d", done, total)
+        path = self.state / "progress.json"
+        path.with_suffix(".tmp").write_text(json.dumps({"frames_done": done, "frames": total}))
+        path.with_suffix(".tmp").replace(path)
+
     def map_and_upload(self, session) -> None:
         """Map the whole log, then wait until every patch is acked (or the run is stopped)."""
         self.token = session.liveliness().declare_token(keys.alive("vehicle", self.vehicle))
         self.uploader = Uploader(session, self.outbox, self.cfg, self.stop, vehicle=self.vehicle)
         self.uploader.start()
         try:
-            self.finished = map_log(self.log, self.mapper, self.on_patches, self.stop, self.timer)
+            self.finished = map_log(self.log, self.mapper, self.on_patches, self.stop, self.timer,
+                                    progress=self.progress)
             self.map_s = time.perf_counter() - self.t0
             self.uploader.mapping_done.set()
             self.uploader.wake.set()

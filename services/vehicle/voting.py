@@ -56,6 +56,53 @@ class VotingGrid:
             return
         self._add_keys(pack_keys(global_cells(points_xy_m), classes), None, t_ns)
 
+    def add_presence(self, points_xy_m: np.ndarray, classes: np.ndarray, t_ns: int = 0) -> None:
+        """One vote per distinct (cell, class) among the points: counts the calls (frames)
+        that saw a class in a cell, however many of their points fell there."""
+        if len(points_xy_m) == 0:
+            return
+        self._add_keys(np.unique(pack_keys(global_cells(points_xy_m), classes)), None, t_ns)
+
+    def drop_unconfirmed(self, seen: "VotingGrid", min_count, first_class: int) -> int:
+        """Remove the votes of every (cell, class >= first_class) that `seen` counts fewer than
+        `min_count` times (e.g. paint seen in fewer frames than that; one value, or an array of
+        one per class); -> keys removed."""
+        keys, _ = self.items()
+        classes = keys & ((1 << CLASS_BITS) - 1)
+        target = classes >= first_class
+        if not target.any():
+            return 0
+        seen_keys, seen_counts = seen.items()
+        wanted = keys[target]
+        count = np.zeros(len(wanted), np.int64)
+        if len(seen_keys):
+            at = np.minimum(np.searchsorted(seen_keys, wanted), len(seen_keys) - 1)
+            hit = seen_keys[at] == wanted
+            count[hit] = seen_counts[at[hit]]
+        need = np.asarray(min_count)
+        need = need[classes[target]] if need.ndim else need
+        drop = np.zeros(len(keys), bool)
+        drop[np.flatnonzero(target)[count < need]] = True
+        self._keys, self._counts = self._keys[~drop], self._counts[~drop]
+        return int(drop.sum())
+
+    def drop_class_where(self, cls: int, seen: "VotingGrid", other: int, min_count: int) -> int:
+        """Remove the votes for class `cls` of every cell that `seen` counts `other` at least
+        `min_count` times in (e.g. a ground sign on a cell that frames saw as lane line);
+        -> keys removed."""
+        keys, _ = self.items()
+        hit = np.flatnonzero((keys & ((1 << CLASS_BITS) - 1)) == cls)
+        seen_keys, seen_counts = seen.items()
+        if not len(hit) or not len(seen_keys):
+            return 0
+        wanted = (keys[hit] >> CLASS_BITS << CLASS_BITS) | other
+        at = np.minimum(np.searchsorted(seen_keys, wanted), len(seen_keys) - 1)
+        drop = hit[(seen_keys[at] == wanted) & (seen_counts[at] >= min_count)]
+        keep = np.ones(len(keys), bool)
+        keep[drop] = False
+        self._keys, self._counts = self._keys[keep], self._counts[keep]
+        return len(drop)
+
     def merge(self, other: "VotingGrid") -> None:
         """Add another grid's votes to this one (e.g. a sealed delta into the whole local map)."""
         keys, counts = other.items()

@@ -355,7 +355,7 @@ def test_sub_pixel_logits_mirror_and_score_at_full_resolution(rng):
 
 
 @needs_model
-def test_the_flip_mode_follows_the_model_unless_configured():
+def test_the_flip_mode_is_the_configured_one_or_the_models_own():
     import dataclasses
 
     import onnxruntime as ort
@@ -369,7 +369,9 @@ def test_the_flip_mode_follows_the_model_unless_configured():
     for mode in FLIP_MODES:
         assert OnnxSegmenter(flip=mode).flip == mode
     cfg = RoadmapConfig().segmentation
-    assert configured_onnx(cfg).flip == asks
+    assert cfg.flip == "alternate"  # the product: one pass a frame (the 15 ms budget)
+    assert configured_onnx(cfg).flip == "alternate"
+    assert configured_onnx(dataclasses.replace(cfg, flip="")).flip == asks  # the file's own
     assert configured_onnx(dataclasses.replace(cfg, flip="off")).flip == "off"
     assert configured_onnx(dataclasses.replace(cfg, flip="alternate")).flip == "alternate"
 
@@ -379,3 +381,38 @@ def test_a_models_flip_mode_reads_files_from_before_the_mode():
     assert model_flip_mode({"flip_average": False}) == "off"
     assert model_flip_mode({"flip_average": True}) == "average"
     assert model_flip_mode({"flip_average": False, "flip": "alternate"}) == "alternate"
+
+
+@needs_model
+def test_rows_above_the_first_row_a_caller_uses_are_none_and_not_segmented(rng):
+    """first_row (the IPM ROI's top row): the network runs on the rows from FIRST_ROW_CONTEXT
+    above it (whole SKY_ROW_STEP steps), the rows above are labelled 0; the rows it runs on
+    get the labels of a network run on them alone."""
+    from common.camera import camera_from_config
+    from common.config import CameraConfig
+    from common.segmentation import roi_first_row
+    from common.segmentation.onnx import FIRST_ROW_CONTEXT, SKY_ROW_STEP
+
+    camera = camera_from_config(CameraConfig())
+    row = roi_first_row(camera, 3.0, 8.0, 8.0)
+    assert 150 < row < camera.height  # the ROI lies in the lower part of the frame
+    seg = OnnxSegmenter(camera=camera, first_row=row, flip="off")
+    assert seg.sky_rows == (row - FIRST_ROW_CONTEXT) // SKY_ROW_STEP * SKY_ROW_STEP
+    image = rng.integers(0, 255, (camera.height, camera.width, 3), dtype=np.uint8)
+    labels = seg.segment(image)
+    assert labels.shape == (camera.height, camera.width)
+    assert not labels[: seg.sky_rows].any()
+    assert seg.preprocess(image).shape[2] == camera.height - seg.sky_rows
+    with pytest.raises(ConfigError, match="first_row"):
+        OnnxSegmenter(camera=camera, first_row=-1)
+
+
+@needs_model
+def test_a_class_margin_leaves_only_that_classes_unsure_pixels_unknown(rng):
+    image = rng.integers(0, 255, (360, 640, 3), dtype=np.uint8)
+    plain = OnnxSegmenter(flip="off", border_net=False, refine={}).segment(image)
+    strict = OnnxSegmenter(flip="off", border_net=False, refine={},
+                           class_min_margin={5: 1e6}).segment(image)
+    assert not (strict == 5).any()
+    others = (plain != 5) & (strict != 0)
+    assert np.array_equal(strict[others], plain[others])

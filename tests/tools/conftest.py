@@ -27,7 +27,8 @@ def karlsruhe_demo(shared_data, tmp_path_factory):
     out, port = base / "out", free_tcp_port()
     args = ["demo", "--small", "--world", f"lanelet2:{karlsruhe_osm(shared_data)}",
             "--vehicles", "1", "--shards", "1", "--seed", "0", "--viewer", port,
-            "--set", "demo.compare_raw_map=false", "--out", out]
+            "--set", "demo.compare_raw_map=false", "--set", 'segmentation.kind="truth"',
+            "--out", out]
     with open(base / "stdout", "w") as stdout, open(base / "stderr", "w") as stderr:
         proc = spawn(*args, stdout=stdout, stderr=stderr)
     states, deadline = [], time.monotonic() + DEMO_TIMEOUT_S

@@ -107,3 +107,36 @@ def test_wrong_votes_dtype_is_rejected():
     msg["body"]["votes"]["dtype"] = "<f4"
     with pytest.raises(CodecError):
         codec.decode(msgpack.packb(msg), expect=GridPatch)
+
+
+def test_paint_seen_in_too_few_frames_is_dropped_and_road_is_kept():
+    """The mapper's hallucination rule (VehicleMapper.min_paint_frames): paint votes of a cell
+    that fewer than 3 frames saw go, however many points one frame put there; road stays."""
+    votes, frames = VotingGrid(), VotingGrid()
+    lane, ghost, road = [0.05, 0.05], [0.15, 0.05], [0.25, 0.05]  # cells 0, 1, 2
+    for k in range(3):
+        pts = np.array([lane, lane] + ([ghost] * 9 if k == 0 else []) + [road])
+        cls = np.array([Cls.LANE_LINE] * 2 + [Cls.GROUND_SIGN] * (9 if k == 0 else 0)
+                       + [Cls.ROAD], np.uint8)
+        votes.add_points(pts, cls)
+        paint = cls >= Cls.LANE_LINE
+        frames.add_presence(pts[paint], cls[paint])
+    assert votes.drop_unconfirmed(frames, 3, first_class=Cls.LANE_LINE) == 1
+    raster = votes.label_raster(0.0, 0.0, 1, 3)
+    np.testing.assert_array_equal(raster[0], [Cls.LANE_LINE, 0, Cls.ROAD])
+    (p,) = votes.patches("v", "t", 0)
+    np.testing.assert_array_equal(p.votes[0], [0, 0, 6, 0, 0, 0])  # every vote of 3 frames
+
+
+def test_a_sign_on_a_cell_frames_saw_as_lane_line_is_dropped():
+    """VehicleMapper.symbol_lane_frames: the model calls pieces of thick lane lines ground sign;
+    a sign's votes go where frames saw lane line in the same cell, elsewhere they stay."""
+    votes, frames = VotingGrid(), VotingGrid()
+    pts = np.array([[0.05, 0.05]] * 3 + [[0.15, 0.05]] * 2)
+    cls = np.array([Cls.GROUND_SIGN] * 2 + [Cls.LANE_LINE] + [Cls.GROUND_SIGN] * 2, np.uint8)
+    votes.add_points(pts, cls)
+    frames.add_presence(pts, cls)
+    assert votes.drop_class_where(Cls.GROUND_SIGN, frames, other=Cls.LANE_LINE,
+                                  min_count=1) == 1
+    np.testing.assert_array_equal(votes.label_raster(0.0, 0.0, 1, 2)[0],
+                                  [Cls.LANE_LINE, Cls.GROUND_SIGN])
