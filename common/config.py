@@ -168,6 +168,9 @@ class LocalizerConfig:
     # the along-road hold does not observe the along-road position: its sigma for the integrity
     # flag grows by this share of the distance driven since the last along-road fix
     hold_drift_per_m: float = 0.003
+    # ... and without any match (no markings in view), by this share: the odometry's heading
+    # and scale errors the filter does not model (a 0.3 deg yaw error is 0.5 % across)
+    dead_reckoning_drift_per_m: float = 0.005
     init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
     init_travel_m: float = 12.0  # metres of frames gathered before the coarse search
     init_frames: int = 30

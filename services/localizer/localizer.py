@@ -22,6 +22,7 @@ from services.localizer.map_cache import TileCache, class_slots
 logger = logging.getLogger(__name__)
 
 RIVAL_SEP_RAD = math.radians(3)  # rival poses: more than 1 m or this far from each other
+SETTLE_FRAMES = 10  # the integrity flag's window of the matches' corrections (1 s at 10 Hz)
 
 
 @dataclass
@@ -67,6 +68,7 @@ class Localizer:
         min_marking_points: int = LocalizerConfig.min_marking_points,
         init_min_marking_points: int = LocalizerConfig.init_min_marking_points,
         hold_drift_per_m: float = LocalizerConfig.hold_drift_per_m,
+        dead_reckoning_drift_per_m: float = LocalizerConfig.dead_reckoning_drift_per_m,
         lost_after_frames: int = 10,
         seed: int = 0,
     ):
@@ -91,6 +93,7 @@ class Localizer:
         self.min_marking_points = min_marking_points
         self.init_min_marking_points = init_min_marking_points
         self.hold_drift_per_m = hold_drift_per_m
+        self.dead_reckoning_drift_per_m = dead_reckoning_drift_per_m
         self.lost_after_frames = lost_after_frames
         self._start(seed)
 
@@ -117,6 +120,10 @@ class Localizer:
         self.fix_travel_m = 0.0
         self.holding = False
         self.unmatched_frames = 0  # frames since the last accepted match
+        self.match_travel_m = 0.0  # the travel then
+        # the matches' position corrections of the last second (xy, m): a filter still being
+        # pulled one way has not converged, whatever its covariance says
+        self.corrections: deque = deque(maxlen=SETTLE_FRAMES)
 
     # -- verbs ------------------------------------------------------------------------------
 
@@ -181,10 +188,14 @@ class Localizer:
             gate_start_m=gate,
         )
         self._remember(result, pts, cls, jac)
+        predicted = self.ekf.pose[:2]
         accepted = result is not None and self.ekf.update_posterior(
             result.pose, self._held(result)
         )
+        self.corrections.append(self.ekf.pose[:2] - predicted)
         self.unmatched_frames = 0 if accepted else self.unmatched_frames + 1
+        if accepted:
+            self.match_travel_m = self.travel_m
         if accepted and not result.degenerate:  # the along-road position observed
             self.fix_travel_m, self.holding = self.travel_m, False
         if accepted and jac is not None and len(result.attitude):
@@ -207,12 +218,13 @@ class Localizer:
 
     @property
     def integrity_sigma_m(self) -> float:
-        """The position sigma the integrity flag trusts: the filter's, or, while the hold keeps
-        the along-road position, what the odometry alone knows of it since it was last seen."""
-        sigma = self.ekf.position_sigma_m
-        if not self.holding:
-            return sigma
-        return math.hypot(sigma, self.hold_drift_per_m * (self.travel_m - self.fix_travel_m))
+        """The position sigma the integrity flag trusts: the filter's, widened by what the
+        odometry alone knows since the last match (and, while the hold keeps the along-road
+        position, since that position was last seen): drift the filter does not model."""
+        held = self.hold_drift_per_m * (self.travel_m - self.fix_travel_m) if self.holding else 0
+        unmatched = self.dead_reckoning_drift_per_m * (self.travel_m - self.match_travel_m)
+        pulled = float(np.hypot(*np.sum(self.corrections, axis=0))) if self.corrections else 0.0
+        return math.hypot(self.ekf.position_sigma_m, held, unmatched, pulled)
 
     # -- steps ------------------------------------------------------------------------------
 
@@ -372,6 +384,8 @@ class Localizer:
         self.ekf.reset(res.pose, cov, scale)
         self.bad_frames = self.waiting_frames = self.unmatched_frames = 0
         self.fix_travel_m, self.holding = self.travel_m, False
+        self.match_travel_m = self.travel_m
+        self.corrections.clear()
         self.inits += 1
         logger.info("initialized at %s (init #%d)", np.round(res.pose, 2), self.inits)
 
@@ -532,6 +546,7 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         min_marking_points=lc.min_marking_points,
         init_min_marking_points=lc.init_min_marking_points,
         hold_drift_per_m=lc.hold_drift_per_m,
+        dead_reckoning_drift_per_m=lc.dead_reckoning_drift_per_m,
         seed=seed,
     )
 
