@@ -90,11 +90,10 @@ class Localizer:
         self.hold_m, self.hold_below_m = hold_m, hold_below_m
         self.rival_travel_m, self.rival_points = rival_travel_m, rival_points
         self.alert_limit_m, self.integrity_k = alert_limit_m, integrity_k
-        self.min_marking_points = min_marking_points
+        self.min_marking_points, self.lost_after_frames = min_marking_points, lost_after_frames
         self.init_min_marking_points = init_min_marking_points
-        self.hold_drift_per_m = hold_drift_per_m
-        self.dead_reckoning_drift_per_m = dead_reckoning_drift_per_m
-        self.lost_after_frames = lost_after_frames
+        self.hold_drift_per_m, self.dead_reckoning_drift_per_m = (hold_drift_per_m,
+                                                                  dead_reckoning_drift_per_m)
         self._start(seed)
 
     def _start(self, seed: int) -> None:
@@ -188,16 +187,7 @@ class Localizer:
             gate_start_m=gate,
         )
         self._remember(result, pts, cls, jac)
-        predicted = self.ekf.pose[:2]
-        accepted = result is not None and self.ekf.update_posterior(
-            result.pose, self._held(result)
-        )
-        self.corrections.append(self.ekf.pose[:2] - predicted)
-        self.unmatched_frames = 0 if accepted else self.unmatched_frames + 1
-        if accepted:
-            self.match_travel_m = self.travel_m
-        if accepted and not result.degenerate:  # the along-road position observed
-            self.fix_travel_m, self.holding = self.travel_m, False
+        accepted = self._fuse(result)
         if accepted and jac is not None and len(result.attitude):
             self.calibration[: len(result.attitude)] += self.calibration_rate * result.attitude
         diag = self._frame_diag(result, accepted)
@@ -210,6 +200,21 @@ class Localizer:
               and self.integrity_k * self.integrity_sigma_m <= self.alert_limit_m)
         diag["integrity_sigma_m"] = round(self.integrity_sigma_m, 4)
         return Estimate(t_ns, self.ekf.vehicle_pose, self.ekf.cov, ok, diag)
+
+    def _fuse(self, result: IcpResult | None) -> bool:
+        """The match into the filter (False: none or gated out), and what the integrity flag
+        keeps of it: the correction, the travel at the last match and along-road fix."""
+        predicted = self.ekf.pose[:2]
+        accepted = result is not None and self.ekf.update_posterior(
+            result.pose, self._held(result)
+        )
+        self.corrections.append(self.ekf.pose[:2] - predicted)
+        self.unmatched_frames = 0 if accepted else self.unmatched_frames + 1
+        if accepted:
+            self.match_travel_m = self.travel_m
+        if accepted and not result.degenerate:  # the along-road position observed
+            self.fix_travel_m, self.holding = self.travel_m, False
+        return accepted
 
     def _lost(self) -> bool:
         """Past the filter's own bound after a run of frames without a match (not a fresh start
