@@ -108,8 +108,8 @@ class DemoConfig:
     vehicle_timeout_s: float = 600.0
     localizer_timeout_s: float = 600.0
     # localize the production drive a second time on the uncompressed map (the codec's share
-    # of the error, report.json localization.uncompressed_map); roadmap eval turns it off
-    compare_raw_map: bool = True
+    # of the error, report.json localization.uncompressed_map; off: about a minute of demo)
+    compare_raw_map: bool = False
     query_timeout_s: float = 5.0
 
 
