@@ -230,7 +230,7 @@ class VehicleConfig:
     symbol_min_margin: float = 3.0
     # a cell's paint of a class seen in fewer frames than this is not voted (sealed out): one
     # frame's hallucination never becomes a marking (1: off)
-    min_paint_frames: int = 3
+    min_paint_frames: int = 2
     min_symbol_frames: int = 3  # ... for stop lines and ground signs
     # a ground sign on a cell that this many frames saw as lane line is not voted (0: off):
     # the model calls pieces of thick lane lines sign (seed 0 / 1 Karlsruhe demo drives

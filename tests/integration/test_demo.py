@@ -75,8 +75,8 @@ def test_report_follows_the_contract(runs):
     for key in ("x_m", "y_m", "yaw_deg", "lateral_m", "longitudinal_m"):
         assert {"mean", "p90", "max"} <= set(r["localization"][key])
     assert r["world"]["km_mapped"] > 0.1  # a --small drive is ~0.2 km
-    raw = r["localization"]["uncompressed_map"]  # the same drive on the uncompressed map
-    assert raw["x_m"]["mean"] is not None and raw["availability_0_5m"] > 0.9
+    # the second localization on the uncompressed map runs only with demo.compare_raw_map
+    assert "uncompressed_map" not in r["localization"]
 
 
 def test_pipeline_counts_are_consistent(runs):
@@ -85,8 +85,9 @@ def test_pipeline_counts_are_consistent(runs):
     assert p["patches_acked"] == p["patches_applied"]  # nothing lost, nothing counted twice
     assert p["errors"] == 0
     assert p["patches_sent"] >= p["patches_acked"]
-    # packed patches: ~1 byte per swept 0.1 m cell; the raw arrays' 16 bytes would be ~13 MB/km
-    assert 0 < p["upload_kb_per_km_driven"] < 3000
+    # sparse/1 patches (the cells form: ~1 byte per swept 0.1 m cell, ~860 KB/km); a --small
+    # drive's few patches carry their seams and key poses over fewer km
+    assert 0 < p["upload_kb_per_km_driven"] < 30
 
 
 def test_map_quality_and_size(runs):
