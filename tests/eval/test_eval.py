@@ -86,7 +86,8 @@ def test_suites_and_seeds():
 def test_roadmap_eval_runs_a_drive_scores_it_and_resumes(tmp_path):
     out = tmp_path / "eval"
     args = ("eval", "--world", "town", "--seeds", "101", "--vehicles", "2",
-            "--set", "demo.max_km=0.15", "--out", str(out))
+            "--set", "demo.max_km=0.15", "--set", 'segmentation.kind="truth"',  # the harness,
+            "--out", str(out))  # not the model (rendering every frame would triple the time)
     res = roadmap(*args, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     result = json.loads((out / "eval.json").read_text())
