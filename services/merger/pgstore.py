@@ -22,13 +22,11 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from common.codec import unpack_cells_votes
 from common.contours import encode_raw
 from common.errors import RoadmapError
 from common.grid import RegionId, region_of_tile
-from common.messages import GridPatch, SparsePatch
-from common.sparse import expand_patch
-from services.merger.store import stored_form
+from common.messages import GridPatch
+from services.merger.store import stored_form, stored_patch
 
 logger = logging.getLogger(__name__)
 
@@ -303,13 +301,7 @@ PATCH_COLUMNS = ("patch_id, vehicle, tx, ty, t_first_ns, t_last_ns, traversal, p
 
 
 def _patch_of_row(pid, vehicle, tx, ty, t0, t1, trav, packed, n, form) -> GridPatch:
-    if form is not None:  # a sparse patch, kept as it came: expanded as the ingest did
-        return expand_patch(SparsePatch(patch_id=pid, vehicle=vehicle, tile=(tx, ty),
-                                        t_first_ns=t0, t_last_ns=t1, traversal=trav,
-                                        data=bytes(packed), form=form))
-    cells, votes = unpack_cells_votes(bytes(packed), n, f"stored patch {pid!r}")
-    return GridPatch(patch_id=pid, vehicle=vehicle, tile=(tx, ty), cells=cells, votes=votes,
-                     t_first_ns=t0, t_last_ns=t1, traversal=trav)
+    return stored_patch(pid, vehicle, (tx, ty), t0, t1, trav, packed, n, form)
 
 
 def wait_for_database(url: str, timeout_s: float = 30.0) -> PgDatabase:

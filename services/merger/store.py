@@ -102,18 +102,13 @@ class ShardStore:
         cur = self.db.execute("SELECT patch_id, tx, ty, vehicle, traversal, t_first_ns, "
                               "t_last_ns, cells, votes, packed_n, form FROM patches ORDER BY rowid")
         for pid, tx, ty, vehicle, trav, t0, t1, cells, votes, packed_n, form in cur:
-            if form is not None:
-                yield expand_patch(SparsePatch(patch_id=pid, vehicle=vehicle, tile=(tx, ty),
-                                               t_first_ns=t0, t_last_ns=t1, traversal=trav,
-                                               data=bytes(cells), form=form))
-                continue
-            if packed_n is None:
+            if packed_n is None and form is None:  # a row from before packed patches
                 c = np.frombuffer(cells, dtype="<u4")
-                v = _votes_from_blob(votes, len(c))
-            else:
-                c, v = unpack_cells_votes(cells, packed_n, f"stored patch {pid!r}")
-            yield GridPatch(patch_id=pid, vehicle=vehicle, tile=(tx, ty), cells=c, votes=v,
-                            t_first_ns=t0, t_last_ns=t1, traversal=trav)
+                yield GridPatch(patch_id=pid, vehicle=vehicle, tile=(tx, ty), cells=c,
+                                votes=_votes_from_blob(votes, len(c)), t_first_ns=t0,
+                                t_last_ns=t1, traversal=trav)
+                continue
+            yield stored_patch(pid, vehicle, (tx, ty), t0, t1, trav, cells, packed_n, form)
 
     def count_patches(self) -> int:
         return int(self.db.execute("SELECT COUNT(*) FROM patches").fetchone()[0])
@@ -130,6 +125,19 @@ class ShardStore:
 
     def _transaction(self):
         return _Transaction(self.db)
+
+
+def stored_patch(pid: str, vehicle: str, tile: tuple[int, int], t_first_ns: int, t_last_ns: int,
+                 traversal: str, payload: bytes, packed_n: int, form: str | None) -> GridPatch:
+    """The GridPatch of a stored row (stored_form's inverse): a sparse patch's payload expanded
+    as the ingest did, else the packed cells + votes unpacked."""
+    if form is not None:
+        return expand_patch(SparsePatch(patch_id=pid, vehicle=vehicle, tile=tile,
+                                        t_first_ns=t_first_ns, t_last_ns=t_last_ns,
+                                        traversal=traversal, data=bytes(payload), form=form))
+    cells, votes = unpack_cells_votes(bytes(payload), packed_n, f"stored patch {pid!r}")
+    return GridPatch(patch_id=pid, vehicle=vehicle, tile=tile, cells=cells, votes=votes,
+                     t_first_ns=t_first_ns, t_last_ns=t_last_ns, traversal=traversal)
 
 
 def stored_form(p: GridPatch) -> tuple[bytes, bytes, int | None, str | None]:
