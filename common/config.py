@@ -174,6 +174,17 @@ class LocalizerConfig:
     # position sigma) lies within the alert limit: a lane-level error must never read as ok
     alert_limit_m: float = 0.5
     integrity_k: float = 3.0
+    # road surface alone does not tell a road from its neighbour or its own length: frames with
+    # fewer marking points than this are not matched (the filter dead-reckons on odometry and
+    # GNSS, its sigma grows), nor is a submap with fewer than init_min_marking_points initialized
+    min_marking_points: int = 30
+    init_min_marking_points: int = 150
+    # the along-road hold does not observe the along-road position: its sigma for the integrity
+    # flag grows by this share of the distance driven since the last along-road fix
+    hold_drift_per_m: float = 0.003
+    # ... and without any match (no markings in view), by this share: the odometry's heading
+    # and scale errors the filter does not model (a 0.3 deg yaw error is 0.5 % across)
+    dead_reckoning_drift_per_m: float = 0.005
     init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
     init_travel_m: float = 12.0  # metres of frames gathered before the coarse search
     init_frames: int = 30

@@ -230,10 +230,15 @@ class PoseFilter:
         self.ekf.P = P_new
         return True
 
-    def update_position(self, xy: np.ndarray, sigma_m: float) -> bool:
-        """GNSS position measurement (isotropic sigma); False if gated out."""
+    def update_position(self, xy: np.ndarray, sigma_m: float, min_sigma_m: float = 0.0) -> bool:
+        """GNSS position measurement (isotropic sigma); False if gated out. A filter whose
+        position sigma is already below min_sigma_m only gates the fix (counting rejections):
+        fixes whose error is a slow bias must not average the filter's sigma below that bias."""
         H = np.eye(2, 6)
-        return self._update(np.asarray(xy, float), H, np.eye(2) * sigma_m**2)
+        z, R = np.asarray(xy, float), np.eye(2) * sigma_m**2
+        if self.initialized and self.position_sigma_m < min_sigma_m:
+            return self._gate(z, H, R)
+        return self._update(z, H, R)
 
     def _inflate(self) -> None:
         """Pose measurements keep disagreeing with the filter: doubt the filter, not them."""
@@ -247,6 +252,18 @@ class PoseFilter:
         y = _pose_residual(z, H @ self.ekf.x.reshape(-1))
         S = H @ self.ekf.P @ H.T + R
         return y, S, float(y @ np.linalg.solve(S, y))
+
+    def _gate(self, z, H, R) -> bool:
+        """The chi-square gate alone, with its rejection counts; True if the fix passes."""
+        _, _, d2 = self.innovation(z, H, R)
+        self.last_nis = d2
+        if d2 > self.chi2[len(z)]:
+            self.rejections += 1
+            self.gnss_rejections += 1
+            return False
+        self.rejections = 0
+        self.gnss_rejections = 0
+        return True
 
     def _update(self, z, H, R) -> bool:
         if not self.initialized:

@@ -22,6 +22,7 @@ from services.localizer.map_cache import TileCache, class_slots
 logger = logging.getLogger(__name__)
 
 RIVAL_SEP_RAD = math.radians(3)  # rival poses: more than 1 m or this far from each other
+SETTLE_FRAMES = 10  # the integrity flag's window of the matches' corrections (1 s at 10 Hz)
 
 
 @dataclass
@@ -64,6 +65,11 @@ class Localizer:
         rival_points: int = 4000,
         alert_limit_m: float = LocalizerConfig.alert_limit_m,
         integrity_k: float = LocalizerConfig.integrity_k,
+        min_marking_points: int = LocalizerConfig.min_marking_points,
+        init_min_marking_points: int = LocalizerConfig.init_min_marking_points,
+        hold_drift_per_m: float = LocalizerConfig.hold_drift_per_m,
+        dead_reckoning_drift_per_m: float = LocalizerConfig.dead_reckoning_drift_per_m,
+        lost_after_frames: int = 10,
         seed: int = 0,
     ):
         self.cache, self.icp, self.ekf, self.search = cache, icp, ekf, search
@@ -84,6 +90,10 @@ class Localizer:
         self.hold_m, self.hold_below_m = hold_m, hold_below_m
         self.rival_travel_m, self.rival_points = rival_travel_m, rival_points
         self.alert_limit_m, self.integrity_k = alert_limit_m, integrity_k
+        self.min_marking_points, self.lost_after_frames = min_marking_points, lost_after_frames
+        self.init_min_marking_points = init_min_marking_points
+        self.hold_drift_per_m, self.dead_reckoning_drift_per_m = (hold_drift_per_m,
+                                                                  dead_reckoning_drift_per_m)
         self._start(seed)
 
     def _start(self, seed: int) -> None:
@@ -104,6 +114,15 @@ class Localizer:
         self.bad_frames = 0
         self.inits = 0
         self.waiting_frames = 0
+        # the along-road position since the last match that observed it: the travel then, and
+        # whether the hold has kept it since (Localizer._held, integrity_sigma_m)
+        self.fix_travel_m = 0.0
+        self.holding = False
+        self.unmatched_frames = 0  # frames since the last accepted match
+        self.match_travel_m = 0.0  # the travel then
+        # the matches' position corrections of the last second (xy, m): a filter still being
+        # pulled one way has not converged, whatever its covariance says
+        self.corrections: deque = deque(maxlen=SETTLE_FRAMES)
 
     # -- verbs ------------------------------------------------------------------------------
 
@@ -123,7 +142,8 @@ class Localizer:
         self.gnss.append((self.odom.copy(), np.asarray(xy_m, float), sigma))
         if not self.ekf.initialized:
             return False
-        accepted = self.ekf.update_position(xy_m, sigma)
+        # the receiver's error is a slowly varying bias: its fixes do not average below it
+        accepted = self.ekf.update_position(xy_m, sigma, min_sigma_m=sigma)
         if self.ekf.gnss_rejections >= self.reinit_gnss_rejections:
             self._reinitialize("GNSS keeps disagreeing")
         return accepted
@@ -140,6 +160,13 @@ class Localizer:
         jacobians: optional (N, 2, 2) point derivatives w.r.t. camera pitch and roll."""
         pts, cls, jac = self._thin(np.asarray(points_v, float), np.asarray(classes), jacobians)
         self.submap.append((self.odom.copy(), pts, cls))
+        markings = _markings(cls) >= self.min_marking_points
+        if self.ekf.initialized and markings and self._lost():
+            # dead-reckoned past the filter's bound: the map's markings are back, but which
+            # marking is which is for the multi-frame search to tell (with its rivals), not a
+            # single frame's ICP started metres off
+            self._reinitialize(f"lost track (sigma {self.ekf.position_sigma_m:.2f} m)",
+                               keep_submap=True)
         if not self.ekf.initialized:
             diag = self._try_initialize()
             if not self.ekf.initialized:
@@ -149,8 +176,8 @@ class Localizer:
         all_pts, all_cls, all_jac = self._with_recent(pts, cls, jac)
         gate = max(self.track_gate_m, 3.0 * self.ekf.position_sigma_m)
         # the filter's prediction is ICP's prior: a frame that barely constrains the along-road
-        # position cannot walk along the lines
-        result = self.icp.register(
+        # position cannot walk along the lines; road surface alone is not matched
+        result = None if not markings else self.icp.register(
             all_pts,
             class_slots(all_cls),
             self.ekf.pose,
@@ -160,9 +187,7 @@ class Localizer:
             gate_start_m=gate,
         )
         self._remember(result, pts, cls, jac)
-        accepted = result is not None and self.ekf.update_posterior(
-            result.pose, self._held(result)
-        )
+        accepted = self._fuse(result)
         if accepted and jac is not None and len(result.attitude):
             self.calibration[: len(result.attitude)] += self.calibration_rate * result.attitude
         diag = self._frame_diag(result, accepted)
@@ -172,8 +197,39 @@ class Localizer:
         # an unresolved ambiguity is not a trusted pose, nor one whose protection level
         # exceeds the alert limit
         ok = (self.ekf.ok and not self.rivals
-              and self.integrity_k * self.ekf.position_sigma_m <= self.alert_limit_m)
+              and self.integrity_k * self.integrity_sigma_m <= self.alert_limit_m)
+        diag["integrity_sigma_m"] = round(self.integrity_sigma_m, 4)
         return Estimate(t_ns, self.ekf.vehicle_pose, self.ekf.cov, ok, diag)
+
+    def _fuse(self, result: IcpResult | None) -> bool:
+        """The match into the filter (False: none or gated out), and what the integrity flag
+        keeps of it: the correction, the travel at the last match and along-road fix."""
+        predicted = self.ekf.pose[:2]
+        accepted = result is not None and self.ekf.update_posterior(
+            result.pose, self._held(result)
+        )
+        self.corrections.append(self.ekf.pose[:2] - predicted)
+        self.unmatched_frames = 0 if accepted else self.unmatched_frames + 1
+        if accepted:
+            self.match_travel_m = self.travel_m
+        if accepted and not result.degenerate:  # the along-road position observed
+            self.fix_travel_m, self.holding = self.travel_m, False
+        return accepted
+
+    def _lost(self) -> bool:
+        """Past the filter's own bound after a run of frames without a match (not a fresh start
+        whose along-road sigma the next frames narrow)."""
+        return not self.ekf.ok and self.unmatched_frames >= self.lost_after_frames
+
+    @property
+    def integrity_sigma_m(self) -> float:
+        """The position sigma the integrity flag trusts: the filter's, widened by what the
+        odometry alone knows since the last match (and, while the hold keeps the along-road
+        position, since that position was last seen): drift the filter does not model."""
+        held = self.hold_drift_per_m * (self.travel_m - self.fix_travel_m) if self.holding else 0
+        unmatched = self.dead_reckoning_drift_per_m * (self.travel_m - self.match_travel_m)
+        pulled = float(np.hypot(*np.sum(self.corrections, axis=0))) if self.corrections else 0.0
+        return math.hypot(self.ekf.position_sigma_m, held, unmatched, pulled)
 
     # -- steps ------------------------------------------------------------------------------
 
@@ -231,6 +287,8 @@ class Localizer:
         if not self.gnss or n < self.init_min_frames or self.waiting_frames % self.init_every:
             return {"state": "waiting"}
         pts, cls = self._submap_points()
+        if _markings(cls) < self.init_min_marking_points:  # a road is like its neighbours
+            return {"state": "waiting_markings"}
         centre_of_yaw, heading = self._gnss_prior()
         ranked = []
         for cand in self.search.search(pts, cls, centre_of_yaw, heading, self.cache):
@@ -276,6 +334,7 @@ class Localizer:
         along = float(u @ self.ekf.cov @ u)
         if along > self.hold_below_m**2:
             return info
+        self.holding = True
         return info + np.outer(u, u) / self.hold_m**2
 
     def _weigh_rivals(self) -> dict:
@@ -328,7 +387,10 @@ class Localizer:
         cov[:2, :2] += np.eye(2) * self.init_sigma_m**2
         cov[2, 2] += math.radians(1.0) ** 2
         self.ekf.reset(res.pose, cov, scale)
-        self.bad_frames = self.waiting_frames = 0
+        self.bad_frames = self.waiting_frames = self.unmatched_frames = 0
+        self.fix_travel_m, self.holding = self.travel_m, False
+        self.match_travel_m = self.travel_m
+        self.corrections.clear()
         self.inits += 1
         logger.info("initialized at %s (init #%d)", np.round(res.pose, 2), self.inits)
 
@@ -403,14 +465,23 @@ class Localizer:
         if self.bad_frames >= self.reinit_bad_frames:
             self._reinitialize(f"{self.bad_frames} bad frames")
 
-    def _reinitialize(self, why: str) -> None:
+    def _reinitialize(self, why: str, keep_submap: bool = False) -> None:
+        """Back to the search. The submap is odometry-chained, independent of the filter: kept
+        when the filter only lost track (its next search is at once), cleared on divergence."""
         logger.warning("localization diverged (%s): re-initializing", why)
         self.ekf.initialized = False
         self.ekf.gnss_rejections = self.ekf.pose_rejections = 0
         self.rivals = []
-        self.submap.clear()
         self.recent.clear()
         self.travel_m = 0.0
+        if keep_submap:
+            self.waiting_frames = self.init_every - 1
+        else:
+            self.submap.clear()
+
+
+def _markings(classes: np.ndarray) -> int:
+    return int(np.count_nonzero(np.asarray(classes) >= Cls.LANE_LINE))
 
 
 def _distinct(ranked):
@@ -477,6 +548,10 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         track_gate_m=lc.icp_track_gate_m,
         alert_limit_m=lc.alert_limit_m,
         integrity_k=lc.integrity_k,
+        min_marking_points=lc.min_marking_points,
+        init_min_marking_points=lc.init_min_marking_points,
+        hold_drift_per_m=lc.hold_drift_per_m,
+        dead_reckoning_drift_per_m=lc.dead_reckoning_drift_per_m,
         seed=seed,
     )
 

@@ -1,0 +1,137 @@
+"""Replay a stored drive's car through the localizer core, offline: no router, no fleet, no
+rendering. The map is every tile the car received in that run (its localizer/tiles.npz, latest
+versions), the frames are the production log's labels segmented and lifted as the node does
+(cached once per drive in CACHE/<drive>.npz), and the result is scored as the suite scores a
+drive (services/eval/score.py). Minutes per 1 km drive instead of the demo's ten or more: the
+loop to iterate the localizer on, paired by drive.
+
+    python -m services.eval.replay DIR [DIR ...] [--set localizer.KEY=VALUE ...] [--out FILE]
+
+DIR: a suite drive folder (DIR/drives/production/<log>, DIR/localizer/tiles.npz); each drive's
+figures go to stdout (one line) and, with --out, to FILE as JSON."""
+
+import argparse
+import json
+import logging
+import sys
+import time
+import tomllib
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from common.config import RoiConfig, SegmentationConfig, load_config
+from common.drivelog import DriveLog
+from services.eval.score import markings_in_view, score_frames
+from services.localizer.localizer import get_localizer, replay
+from services.localizer.map_cache import get_tile_cache
+from services.localizer.outputs import read_tiles
+from services.localizer.tiles import decode_tile_message
+
+logger = logging.getLogger(__name__)
+
+CACHE = Path("/tmp/roadmap-replay")
+
+
+def stored_config(drive_dir: Path, sets: list[str]):
+    """Today's defaults with the run's segmentation and ROI (what made its frames), then sets."""
+    with open(drive_dir / "localizer" / "config.toml", "rb") as f:
+        old = tomllib.load(f)
+    cfg = load_config(sets=sets)
+    seg = {k: v for k, v in old.get("segmentation", {}).items()
+           if k in SegmentationConfig.__dataclass_fields__}
+    return replace(cfg, segmentation=replace(cfg.segmentation, **seg),
+                   roi=RoiConfig(**old.get("roi", {})))
+
+
+def frame_points(log: DriveLog, cfg, cache_file: Path):
+    """Per frame (points_v, classes, jacobians) as the node makes them; cached."""
+    if cache_file.exists():
+        with np.load(cache_file) as z:  # each z[key] reads the whole array: once each
+            pts, cls, jac, off, in_view = (z[k] for k in ("pts", "cls", "jac", "offsets",
+                                                         "in_view"))
+        return [(pts[a:b], cls[a:b], jac[a:b])
+                for a, b in zip(off[:-1], off[1:], strict=True)], in_view
+    from services.localizer.node import _FrameSource
+
+    src = _FrameSource(log, cfg)
+    frames = [src.points(i) for i in range(len(log))]
+    in_view = markings_in_view(log, cfg.roi)
+    cache_file.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(cache_file, pts=np.concatenate([f[0] for f in frames]),
+             cls=np.concatenate([f[1] for f in frames]),
+             jac=np.concatenate([f[2] for f in frames]),
+             offsets=np.cumsum([0] + [len(f[0]) for f in frames]), in_view=in_view)
+    return frames, in_view
+
+
+def received_map(drive_dir: Path, lc):
+    """A TileCache holding every tile the car received in the run, in its latest version."""
+    received = read_tiles(drive_dir / "localizer" / "tiles.npz")
+    cache = get_tile_cache(lc)
+    cache.capacity = max(cache.capacity, len(received) + 1)
+    for _, msg in received:
+        cache.put(msg.tile, msg.version, decode_tile_message(msg))
+    return cache
+
+
+def replay_drive(drive_dir: Path, sets: list[str]) -> dict:
+    """The suite's score of the stored drive re-localized with today's localizer (+ sets)."""
+    drive_dir = Path(drive_dir)
+    cfg = stored_config(drive_dir, sets)
+    (prod,) = sorted((drive_dir / "drives" / "production").iterdir())
+    log = DriveLog(prod)
+    frames, in_view = frame_points(log, cfg, CACHE / f"{drive_dir.name}.npz")
+    loc = get_localizer(cfg.localizer, received_map(drive_dir, cfg.localizer),
+                        camera=log.meta.camera)
+    t0 = time.process_time()
+    est = replay(loc, log.streams, lambda i: _pick(frames[i], cfg.localizer.attitude_roll))
+    cpu_s = time.process_time() - t0
+    poses = np.array([e.pose for e in est]).reshape(-1, 3)
+    ok = np.array([bool(e.ok) for e in est])
+    score = score_frames(log.streams["frame_t_ns"], poses, ok,
+                         log.streams["frame_pose_true"], in_view)
+    score.pop("errors_m")
+    return {"drive": drive_dir.name, "inits": loc.inits, "cpu_s": round(cpu_s, 1),
+            "ok_frames": int(ok.sum()), **score}
+
+
+def _pick(frame, roll: bool):
+    pts, cls, jac = frame
+    return pts, cls, (jac if roll else jac[:, :, :1])
+
+
+def line(r: dict) -> str:
+    m = r["markings_in_view"]
+
+    def mean(k):
+        v = m[k]["mean"]
+        return "-" if v is None else f"{v:.3f}"
+
+    conv, avail = r["convergence_s"], m["availability_0_5m"]
+    return (f"{r['drive']}: x {mean('x_m')} y {mean('y_m')} yaw {mean('yaw_deg')} "
+            f"avail {'-' if avail is None else round(avail, 3)} "
+            f"conv {'-' if conv is None else round(conv, 1)} s viol {r['integrity_violations']} "
+            f"ok {r['ok_frames']}/{r['frames']} inits {r['inits']} cpu {r['cpu_s']} s")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("drives", nargs="+")
+    p.add_argument("--set", action="append", default=[])
+    p.add_argument("--out")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    results = []
+    for d in args.drives:
+        results.append(replay_drive(Path(d), args.set))
+        sys.stdout.write(line(results[-1]) + "\n")
+        sys.stdout.flush()
+    if args.out:
+        Path(args.out).write_text(json.dumps({"sets": args.set, "drives": results}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
