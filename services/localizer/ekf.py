@@ -65,7 +65,7 @@ class PoseFilter:
         gate_prob_chi2: dict | None = None,
         max_position_sigma_m: float = LocalizerConfig.max_position_sigma_m,
         max_rejections: int = 20,
-        scale_sigma0: float = 0.03,
+        scale_sigma0: float = LocalizerConfig.scale_sigma0,
         scale_walk_per_s: float = LocalizerConfig.scale_walk_per_s,
         gyro_bias_sigma0_rps: float = math.radians(0.1),
         gyro_bias_walk_rps: float = math.radians(0.002),
@@ -221,6 +221,7 @@ class PoseFilter:
         x[3:] = x[3:] + K @ shift
         x[:3] = np.asarray(pose, float)
         x[2] = float(wrap_angle(x[2]))
+        x[3] = min(max(x[3], 1.0 - SCALE_LIMIT), 1.0 + SCALE_LIMIT)  # as _update clamps it
         P_new = np.empty_like(P)
         P_new[:3, :3] = Ppp_post
         P_new[3:, :3] = K @ Ppp_post

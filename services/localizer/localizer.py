@@ -527,6 +527,7 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
     ekf = PoseFilter(
         speed_sigma_rel=lc.speed_sigma_rel,
         scale_walk_per_s=lc.scale_walk_per_s,
+        scale_sigma0=lc.scale_sigma0,
         yaw_rate_sigma_rps=math.radians(lc.yaw_rate_sigma_dps),
         max_position_sigma_m=lc.max_position_sigma_m,
     )
