@@ -175,6 +175,12 @@ class LocalizerConfig:
     # position sigma) lies within the alert limit: a lane-level error must never read as ok
     alert_limit_m: float = 0.5
     integrity_k: float = 3.0
+    # ... and the position sigma widened by the matches' net correction over the last this many
+    # frames: a filter still being pulled one way has not converged, whatever its covariance says
+    settle_frames: int = 10
+    # ... and, after a (re)start or a gap of settle_frames without a match, since then, for up
+    # to this many frames
+    reacquire_settle_frames: int = 50
     # road surface alone does not tell a road from its neighbour or its own length: frames with
     # fewer marking points than this are not matched (the filter dead-reckons on odometry and
     # GNSS, its sigma grows), nor is a submap with fewer than init_min_marking_points initialized

@@ -22,7 +22,6 @@ from services.localizer.map_cache import TileCache, class_slots
 logger = logging.getLogger(__name__)
 
 RIVAL_SEP_RAD = math.radians(3)  # rival poses: more than 1 m or this far from each other
-SETTLE_FRAMES = 10  # the integrity flag's window of the matches' corrections (1 s at 10 Hz)
 
 
 @dataclass
@@ -65,6 +64,8 @@ class Localizer:
         rival_points: int = 4000,
         alert_limit_m: float = LocalizerConfig.alert_limit_m,
         integrity_k: float = LocalizerConfig.integrity_k,
+        settle_frames: int = LocalizerConfig.settle_frames,
+        reacquire_settle_frames: int = LocalizerConfig.reacquire_settle_frames,
         min_marking_points: int = LocalizerConfig.min_marking_points,
         init_min_marking_points: int = LocalizerConfig.init_min_marking_points,
         hold_drift_per_m: float = LocalizerConfig.hold_drift_per_m,
@@ -90,6 +91,7 @@ class Localizer:
         self.hold_m, self.hold_below_m = hold_m, hold_below_m
         self.rival_travel_m, self.rival_points = rival_travel_m, rival_points
         self.alert_limit_m, self.integrity_k = alert_limit_m, integrity_k
+        self.settle_frames, self.reacquire_settle_frames = settle_frames, reacquire_settle_frames
         self.min_marking_points, self.lost_after_frames = min_marking_points, lost_after_frames
         self.init_min_marking_points = init_min_marking_points
         self.hold_drift_per_m, self.dead_reckoning_drift_per_m = (hold_drift_per_m,
@@ -122,7 +124,10 @@ class Localizer:
         self.match_travel_m = 0.0  # the travel then
         # the matches' position corrections of the last second (xy, m): a filter still being
         # pulled one way has not converged, whatever its covariance says
-        self.corrections: deque = deque(maxlen=SETTLE_FRAMES)
+        self.corrections: deque = deque(maxlen=self.settle_frames)
+        # accepted matches and their net correction since the (re)start or since markings came
+        # back after a gap (Localizer._pulled_m)
+        self.settled_matches, self.pull_since_gap = 0, np.zeros(2)
 
     # -- verbs ------------------------------------------------------------------------------
 
@@ -208,6 +213,11 @@ class Localizer:
         accepted = result is not None and self.ekf.update_posterior(
             result.pose, self._held(result)
         )
+        if (accepted and self.unmatched_frames >= self.settle_frames  # markings are back
+                and self.settled_matches >= self.reacquire_settle_frames):  # (else settling)
+            self.settled_matches, self.pull_since_gap = 0, np.zeros(2)
+        self.settled_matches += int(accepted)
+        self.pull_since_gap = self.pull_since_gap + (self.ekf.pose[:2] - predicted)
         self.corrections.append(self.ekf.pose[:2] - predicted)
         self.unmatched_frames = 0 if accepted else self.unmatched_frames + 1
         if accepted:
@@ -228,8 +238,19 @@ class Localizer:
         position, since that position was last seen): drift the filter does not model."""
         held = self.hold_drift_per_m * (self.travel_m - self.fix_travel_m) if self.holding else 0
         unmatched = self.dead_reckoning_drift_per_m * (self.travel_m - self.match_travel_m)
-        pulled = float(np.hypot(*np.sum(self.corrections, axis=0))) if self.corrections else 0.0
-        return math.hypot(self.ekf.position_sigma_m, held, unmatched, pulled)
+        return math.hypot(self.ekf.position_sigma_m, held, unmatched, self._pulled_m())
+
+    def _pulled_m(self) -> float:
+        """How far the matches moved the filter lately: over the last `settle_frames`, and,
+        until `reacquire_settle_frames` matches were accepted since a (re)start or since
+        markings came back after a gap, over all of them. The first matches after a gap can
+        walk the pose half a metre over a few seconds with a covariance of centimetres (a
+        window of one second sees only the walk's speed), and a dead-reckoned stretch before
+        they settle keeps what they did to the heading."""
+        recent = float(np.hypot(*np.sum(self.corrections, axis=0))) if self.corrections else 0.0
+        if self.settled_matches >= self.reacquire_settle_frames:
+            return recent
+        return max(recent, float(np.hypot(*self.pull_since_gap)))
 
     # -- steps ------------------------------------------------------------------------------
 
@@ -391,6 +412,7 @@ class Localizer:
         self.fix_travel_m, self.holding = self.travel_m, False
         self.match_travel_m = self.travel_m
         self.corrections.clear()
+        self.settled_matches, self.pull_since_gap = 0, np.zeros(2)
         self.inits += 1
         logger.info("initialized at %s (init #%d)", np.round(res.pose, 2), self.inits)
 
@@ -549,6 +571,8 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         track_gate_m=lc.icp_track_gate_m,
         alert_limit_m=lc.alert_limit_m,
         integrity_k=lc.integrity_k,
+        settle_frames=lc.settle_frames,
+        reacquire_settle_frames=lc.reacquire_settle_frames,
         min_marking_points=lc.min_marking_points,
         init_min_marking_points=lc.init_min_marking_points,
         hold_drift_per_m=lc.hold_drift_per_m,
