@@ -36,29 +36,62 @@ class GroundRays:
         self.yc = norm[:, 1].reshape(camera.height, camera.width).astype(np.float32)
 
     def ground(self, T_vehicle_camera: np.ndarray, max_range_m: float = 250.0):
-        """Ground points (gx, gy) in the vehicle frame, their distance, and the ground mask."""
+        """(rows, gx, gy, dist, ok, rays): the image rows that see the ground (a slice: every
+        ground pixel is in them), their ground points (gx, gy) in the vehicle frame and
+        distances, the ground mask (H, W) and the rays (rx, ry, rz) of every pixel. Only the
+        rows below the horizon are intersected with the ground (about half of them)."""
         R, t = T_vehicle_camera[:3, :3].astype(np.float32), T_vehicle_camera[:3, 3]
-        rx = R[0, 0] * self.xc + R[0, 1] * self.yc + R[0, 2]
-        ry = R[1, 0] * self.xc + R[1, 1] * self.yc + R[1, 2]
-        rz = R[2, 0] * self.xc + R[2, 1] * self.yc + R[2, 2]
+        rx, ry, rz = (_affine(self.xc, self.yc, R[i]) for i in range(3))
         down = rz < -1e-4
-        lam = np.where(down, np.float32(-t[2]) / np.where(down, rz, -1.0), np.float32(np.inf))
-        horiz = np.sqrt(rx * rx + ry * ry)
-        dist = lam * horiz
-        ok = down & (dist < max_range_m)
-        lam = np.where(ok, lam, 0.0).astype(np.float32)
-        gx = np.float32(t[0]) + lam * rx
-        gy = np.float32(t[1]) + lam * ry
-        return gx, gy, np.where(ok, dist, np.float32(max_range_m)), ok, (rx, ry, rz)
+        rows = _row_span(down)
+        rx_b, ry_b, rz_b, down_b = rx[rows], ry[rows], rz[rows], down[rows]
+        lam = np.float32(-t[2]) / np.where(down_b, rz_b, np.float32(-1.0))
+        dist = np.multiply(rx_b, rx_b)
+        dist += np.square(ry_b)
+        np.sqrt(dist, out=dist)
+        dist *= lam  # lam * horiz
+        ok_b = down_b & (dist < max_range_m)
+        np.copyto(lam, np.float32(0.0), where=~ok_b)
+        np.copyto(dist, np.float32(max_range_m), where=~ok_b)
+        gx = lam * rx_b
+        gx += np.float32(t[0])
+        gy = lam * ry_b
+        gy += np.float32(t[1])
+        ok = np.zeros_like(down)
+        ok[rows] = ok_b
+        return rows, gx, gy, dist, ok, (rx, ry, rz)
+
+
+def _affine(xc: np.ndarray, yc: np.ndarray, r) -> np.ndarray:
+    """r[0] xc + r[1] yc + r[2] (float32, in this order of operations)."""
+    out = r[0] * xc
+    out += r[1] * yc
+    out += r[2]
+    return out
+
+
+def _row_span(mask: np.ndarray) -> slice:
+    """The rows from the first to the last that hold a True of `mask` (its last row if none:
+    the band is never empty)."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return slice(mask.shape[0] - 1, mask.shape[0])
+    return slice(int(rows[0]), int(rows[-1]) + 1)
 
 
 @dataclass
 class FrameGeometry:
-    wx: np.ndarray  # world x of each pixel's ground point (H, W) float32
+    rows: slice  # the image rows that see the ground; wx, wy and dist are theirs
+    wx: np.ndarray  # world x of each pixel's ground point (rows, W) float32
     wy: np.ndarray
     dist: np.ndarray  # metres from the camera along the ground
-    ground: np.ndarray  # bool: the ray hits the ground inside the range
-    rays: tuple  # (rx, ry, rz) in the vehicle frame
+    ground: np.ndarray  # bool (H, W): the ray hits the ground inside the range
+    rays: tuple  # (rx, ry, rz) in the vehicle frame, (H, W) each
+
+    @property
+    def ground_rows(self) -> np.ndarray:
+        """The ground mask of `rows`."""
+        return self.ground[self.rows]
 
 
 class LabelRenderer:
@@ -77,23 +110,33 @@ class LabelRenderer:
         self.cell_m = cell_m
 
     def geometry(self, pose, T_vehicle_camera) -> FrameGeometry:
-        gx, gy, dist, ok, rays = self.rays.ground(T_vehicle_camera)
+        rows, gx, gy, dist, ok, rays = self.rays.ground(T_vehicle_camera)
         c, s = np.float32(math.cos(pose[2])), np.float32(math.sin(pose[2]))
-        wx = np.float32(pose[0]) + c * gx - s * gy
-        wy = np.float32(pose[1]) + s * gx + c * gy
-        return FrameGeometry(wx, wy, dist, ok, rays)
+        wx = c * gx
+        wx += np.float32(pose[0])
+        wx -= s * gy
+        wy = s * gx
+        wy += np.float32(pose[1])
+        wy += c * gy
+        return FrameGeometry(rows, wx, wy, dist, ok, rays)
 
     def labels(self, pose, T_vehicle_camera, geo: FrameGeometry | None = None):
-        """(labels (H, W) uint8, geometry, window) for a vehicle pose (x, y, yaw)."""
+        """(labels (H, W) uint8, geometry, (window, mx, my)) for a vehicle pose (x, y, yaw):
+        mx, my (H, W) are the pixels' label window coordinates (-10 off the ground)."""
         geo = geo or self.geometry(pose, T_vehicle_camera)
         window, x0, y0 = self.tiles.window(pose[0], pose[1])
         inv = np.float32(1.0 / self.cell_m)
-        mx = np.where(geo.ground, (geo.wx - np.float32(x0)) * inv - 0.5, -10.0)
-        my = np.where(geo.ground, (geo.wy - np.float32(y0)) * inv - 0.5, -10.0)
-        mx, my = mx.astype(np.float32), my.astype(np.float32)
-        lab = cv2.remap(
-            window, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
-        )
+        off_ground = ~geo.ground_rows
+        mx, my = (np.full(geo.ground.shape, -10.0, np.float32) for _ in range(2))
+        for m, w, origin in ((mx, geo.wx, x0), (my, geo.wy, y0)):
+            band = m[geo.rows]
+            np.subtract(w, np.float32(origin), out=band)
+            band *= inv
+            band -= 0.5
+            np.copyto(band, np.float32(-10.0), where=off_ground)
+        lab = np.zeros(geo.ground.shape, np.uint8)
+        cv2.remap(window, mx[geo.rows], my[geo.rows], cv2.INTER_NEAREST, dst=lab[geo.rows],
+                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         return lab, geo, (window, mx, my)
 
 
@@ -356,31 +399,31 @@ class FrameRenderer:
         camera's ground point `camera_xy`, g the ray's ground point, H the camera height): off
         the road at t, the ray ends on the curb top / sidewalk / verge there; on the road at t
         but off the road at g, it ends on the curb's vertical face. Returns (surface sampled at
-        t, top mask, face mask), or None without curbs."""
+        t, top mask, face mask) of the ground rows (mx, my: theirs), or None without curbs."""
         if not self.look.curb:
             return None
         height = float(T_vehicle_camera[2, 3])
         k = np.float32(max(height - self.look.curb_h_m, 0.05) / height)
-        cx, cy = camera_xy
-        tx = np.where(geo.ground, cx + (mx - cx) * k, -10.0).astype(np.float32)
-        ty = np.where(geo.ground, cy + (my - cy) * k, -10.0).astype(np.float32)
+        ground = geo.ground_rows
+        tx, ty = (_toward(m, c, k, ground) for m, c in zip((mx, my), camera_xy, strict=True))
         surf_t = _remap_surface(surface, tx, ty)
         road_t = surf_t[:, :, 0] >= 128
-        top = geo.ground & ~road_t
-        return surf_t, top, geo.ground & road_t
+        top = ground & ~road_t
+        return surf_t, top, ground & road_t
 
     def _ground_labels(self, pose, T_vehicle_camera, rgb: bool = True):
         """(labels, geometry, (surface, mx, my), raised) of the ground: the road hidden behind
-        a raised island gets label 0. Without `rgb`, the surface masks are computed only for
-        raised curbs (else None)."""
+        a raised island gets label 0. mx, my and raised are of the ground rows (geo.rows).
+        Without `rgb`, the surface masks are computed only for raised curbs (else None)."""
         lab, geo, (window, mx, my) = self.labeler.labels(pose, T_vehicle_camera)
         if not (rgb or self.look.curb):
-            return lab, geo, (None, mx, my), None
+            return lab, geo, (None, mx[geo.rows], my[geo.rows]), None
         camera_xy = self._camera_cell(pose, T_vehicle_camera)
         surface = self._surface(window, mx, my, geo.ground, camera_xy)
+        mx, my = mx[geo.rows], my[geo.rows]
         raised = self._raised(T_vehicle_camera, geo, surface, camera_xy, mx, my)
         if raised is not None:
-            lab[raised[1]] = 0
+            lab[geo.rows][raised[1]] = 0
         return lab, geo, (surface, mx, my), raised
 
     def labels(self, pose, T_vehicle_camera, vehicles=()) -> np.ndarray:
@@ -396,72 +439,113 @@ class FrameRenderer:
         lab, geo, (surface, mx, my), raised = self._ground_labels(pose, T_vehicle_camera)
         if curb_label is not None and raised is not None:
             surf_t, top, on_face = raised
-            lab[(on_face & (lab == 0)) | (top & (surf_t[:, :, 2] >= 128))] = curb_label
+            band = lab[geo.rows]
+            band[(on_face & (band == 0)) | (top & (surf_t[:, :, 2] >= 128))] = curb_label
         rgb = self._ground(geo, surface, mx, my, t_s, raised)
         rgb = self._sky(rgb, geo, pose)
         rgb = self._vehicles(rgb, lab, pose, T_vehicle_camera, vehicles)
         return self._sensor(rgb), lab
 
     # -- layers --------------------------------------------------------------------------------
-
-    def _remap_wrap(self, tex, wx, wy, res_m):
-        mx = (wx * np.float32(1.0 / res_m)).astype(np.float32)
-        my = (wy * np.float32(1.0 / res_m)).astype(np.float32)
-        n = np.float32(tex.shape[0])
-        mx -= np.floor(mx / n) * n  # wrap explicitly: keeps float32 precision far from 0
-        my -= np.floor(my / n) * n
-        return cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    # The ground layers work on the ground rows only, in place on float32 planes: (H, W)
+    # temporaries cost more than the arithmetic. Each in-place sequence does the original
+    # expression's operations in its order (a + b == b + a, a * b == b * a are exact), so
+    # the pixels are the same bytes.
 
     def _ground(self, geo, surface, mx, my, t_s, raised=None):
         """Asphalt / roadside with texture, raised curbs and sidewalks, worn paint, shadows,
-        lighting and haze, as three (H, W) colour planes (`surface`: _surface's)."""
+        lighting and haze of the ground rows, as one (rows, W, 3) float32 image (`surface`:
+        _surface's; mx, my: the rows' window coordinates)."""
         look = self.look
         surf = _remap_surface(surface, mx, my)
-        road, paint, _, _ = (c.astype(np.float32) * np.float32(1 / 255) for c in cv2.split(surf))
-        face = np.zeros_like(road)
-        curb = walk = face
+        road, paint = _unit_channel(surf, 0), _unit_channel(surf, 1)
+        curb = walk = face = None
         if raised is not None:
             surf_t, top, on_face = raised
-            _, _, curb_t, walk_t = (
-                c.astype(np.float32) * np.float32(1 / 255) for c in cv2.split(surf_t)
-            )
-            face = np.clip(1.0 - road, 0.0, 1.0) * on_face  # off the road at g, on it at t
+            face = np.subtract(1.0, road)  # off the road at g, on it at t
+            np.clip(face, 0.0, 1.0, out=face)
+            face *= on_face
             topf = top.astype(np.float32)
-            curb, walk = curb_t * topf, walk_t * topf
-            road = road * (1.0 - topf)  # hidden behind a raised island
-            paint = paint * (1.0 - topf)
-        paint = np.clip((paint - 0.27) * np.float32(1 / 0.45), 0.0, 1.0)  # re-sharpen
-        wx, wy = geo.wx, geo.wy
-        grain, wear = cv2.split(self._remap_wrap(look.fine, wx, wy, 0.04))
-        blotch, mix = cv2.split(self._remap_wrap(look.coarse, wx, wy, 0.5))
-        near = np.clip(1.0 - geo.dist * np.float32(1 / 40.0), 0.0, 1.0)
-        tex = (1.0 + (grain - 1.0) * near) * blotch
-        paint *= np.clip((wear - look.wear_level) * 4.0, 0.0, 1.0) * np.float32(look.fade)
-        mix = np.clip((mix - 0.5) * 4.0 + 0.5, 0.0, 1.0)  # patches of the second roadside
-        gain = np.float32(look.gain * (1.0 + look.gain_wobble * math.sin(0.07 * t_s)))
-        shade = (1.0 - look.shadow_strength * self._remap_wrap(look.shadow, wx, wy, 0.25)) * gain
-        fog = np.clip(geo.dist * np.float32(1.0 / look.fog_m), 0.0, 1.0) ** 1.5
-        keep = shade * (1.0 - fog)
-        a = tex * keep * (1.0 - paint)
-        b = paint * keep
-        off = np.clip(1.0 - road - curb - walk - face, 0.0, 1.0)
+            curb, walk = _unit_channel(surf_t, 2), _unit_channel(surf_t, 3)
+            curb *= topf
+            walk *= topf
+            np.subtract(1.0, topf, out=topf)
+            road *= topf  # hidden behind a raised island
+            paint *= topf
+        paint -= 0.27  # re-sharpen
+        paint *= np.float32(1 / 0.45)
+        np.clip(paint, 0.0, 1.0, out=paint)
+        grain_wear = _remap_wrap(look.fine, geo.wx, geo.wy, 0.04)
+        blotch_mix = _remap_wrap(look.coarse, geo.wx, geo.wy, 0.5)
+        tex = self._texture(geo.dist, grain_wear[:, :, 0], blotch_mix[:, :, 0])
+        wear = np.subtract(grain_wear[:, :, 1], look.wear_level)
+        wear *= 4.0
+        np.clip(wear, 0.0, 1.0, out=wear)
+        wear *= np.float32(look.fade)
+        paint *= wear
+        mix = np.subtract(blotch_mix[:, :, 1], 0.5)  # patches of the second roadside
+        mix *= 4.0
+        mix += 0.5
+        np.clip(mix, 0.0, 1.0, out=mix)
+        fog = geo.dist * np.float32(1.0 / look.fog_m)
+        np.clip(fog, 0.0, 1.0, out=fog)
+        np.power(fog, 1.5, out=fog)
+        keep = self._shade(geo.wx, geo.wy, t_s)
+        keep *= np.subtract(1.0, fog)
+        a = tex
+        a *= keep
+        a *= np.subtract(1.0, paint)
+        b = paint
+        b *= keep
+        off = np.subtract(1.0, road)
+        for m in (curb, walk, face):
+            if m is not None:
+                off -= m
+        np.clip(off, 0.0, 1.0, out=off)
+        out = np.empty(road.shape + (3,), np.float32)
+        ground, tmp = np.empty_like(road), np.empty_like(road)
         face_gain = np.float32(look.curb_face)
-        # per colour plane: (H, W) x scalar ops are far cheaper than (H, W, 1) x (3,) broadcasts
-        planes = []
         for c in range(3):
-            ground = (
-                off * (look.offroad_rgb[c] + (look.offroad2_rgb[c] - look.offroad_rgb[c]) * mix)
-                + road * look.asphalt_rgb[c]
-                + curb * look.curb_rgb[c]
-                + face * (look.curb_rgb[c] * face_gain)
-                + walk * look.sidewalk_rgb[c]
-            )
-            planes.append(ground * a + look.paint_rgb[c] * b + look.haze_rgb[c] * fog)
-        return planes
+            # per colour plane: (rows, W) x scalar ops are far cheaper than x (3,) broadcasts
+            np.multiply(mix, look.offroad2_rgb[c] - look.offroad_rgb[c], out=ground)
+            ground += look.offroad_rgb[c]
+            ground *= off
+            layers = [(road, look.asphalt_rgb[c])]
+            if raised is not None:
+                layers += [(curb, look.curb_rgb[c]), (face, look.curb_rgb[c] * face_gain),
+                           (walk, look.sidewalk_rgb[c])]
+            for m, colour in layers:  # without curbs those are 0: adding 0 changes nothing
+                ground += np.multiply(m, colour, out=tmp)
+            ground *= a
+            ground += np.multiply(b, look.paint_rgb[c], out=tmp)
+            ground += np.multiply(fog, look.haze_rgb[c], out=tmp)
+            out[:, :, c] = ground
+        return out
 
-    def _sky(self, planes, geo, pose):
-        """Sky gradient and a world-fixed skyline (buildings, trees) where no ground is seen;
-        returns the merged (H, W, 3) float32 image."""
+    def _texture(self, dist, grain, blotch):
+        """Asphalt grain (fading out with distance) times large blotches."""
+        near = dist * np.float32(1 / 40.0)
+        np.subtract(1.0, near, out=near)
+        np.clip(near, 0.0, 1.0, out=near)
+        tex = np.subtract(grain, 1.0)
+        tex *= near
+        tex += 1.0
+        tex *= blotch
+        return tex
+
+    def _shade(self, wx, wy, t_s):
+        """Exposure (with clouds) times the world-anchored shadows."""
+        look = self.look
+        gain = np.float32(look.gain * (1.0 + look.gain_wobble * math.sin(0.07 * t_s)))
+        shade = _remap_wrap(look.shadow, wx, wy, 0.25)
+        shade *= look.shadow_strength
+        np.subtract(1.0, shade, out=shade)
+        shade *= gain
+        return shade
+
+    def _sky(self, ground_rgb, geo, pose):
+        """Sky gradient and a world-fixed skyline (buildings, trees) where no ground is seen,
+        the ground rows' `ground_rgb` where it is; returns the (H, W, 3) float32 image."""
         look = self.look
         small = (self.w // 4, self.h // 4)
         rx, ry, rz = (cv2.resize(r, small, interpolation=cv2.INTER_AREA) for r in geo.rays)
@@ -475,11 +559,9 @@ class FrameRenderer:
         windows = ((b % 7) < 3) & ((elev * 150.0) % 3.0 < 1.4) & (look.skyline_elev[b] > 0.05)
         bcol = bcol * np.where(windows, 0.6, 1.0)[..., None] * look.gain
         sky = np.where(building[..., None], bcol, sky).astype(np.float32)
-        sky = cv2.resize(sky, (self.w, self.h), interpolation=cv2.INTER_LINEAR)
-        no_ground = ~geo.ground
-        for c in range(3):
-            np.copyto(planes[c], sky[:, :, c], where=no_ground)
-        return cv2.merge([p.astype(np.float32, copy=False) for p in planes])
+        rgb = cv2.resize(sky, (self.w, self.h), interpolation=cv2.INTER_LINEAR)
+        np.copyto(rgb[geo.rows], ground_rgb, where=geo.ground_rows[:, :, None])
+        return rgb
 
     def _vehicle_items(self, pose, T_vehicle_camera, vehicles):
         """(image hull int32, vehicle, corner pixels) of other vehicles, far to near; vehicles
@@ -550,6 +632,36 @@ def _remap_surface(surface, mx, my) -> np.ndarray:
     if x0 or y0:
         mx, my = mx - np.float32(x0), my - np.float32(y0)
     return cv2.remap(masks, mx, my, cv2.INTER_LINEAR)
+
+
+def _unit_channel(image: np.ndarray, c: int) -> np.ndarray:
+    """Channel c of a uint8 image as float32 in [0, 1]."""
+    out = image[:, :, c].astype(np.float32)
+    out *= np.float32(1 / 255)
+    return out
+
+
+def _toward(m: np.ndarray, c, k, ground: np.ndarray) -> np.ndarray:
+    """c + (m - c) k (float32) on the ground, -10 (off every window) elsewhere."""
+    out = np.subtract(m, c)
+    out *= k
+    out += c
+    np.copyto(out, np.float32(-10.0), where=~ground)
+    return out
+
+
+def _remap_wrap(tex: np.ndarray, wx: np.ndarray, wy: np.ndarray, res_m: float) -> np.ndarray:
+    """A world-anchored tileable texture (res_m per texel) at world points (wx, wy)."""
+    n = np.float32(tex.shape[0])
+    maps = []
+    for w in (wx, wy):
+        m = w * np.float32(1.0 / res_m)
+        q = m / n
+        np.floor(q, out=q)
+        q *= n
+        m -= q  # wrap explicitly: keeps float32 precision far from 0
+        maps.append(m)
+    return cv2.remap(tex, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
 
 
 _NO_SURFACE = np.zeros((1, 1, 4), np.uint8)  # a frame that reads nothing of its window
