@@ -545,10 +545,15 @@ class FrameRenderer:
 
     def _sky(self, ground_rgb, geo, pose):
         """Sky gradient and a world-fixed skyline (buildings, trees) where no ground is seen,
-        the ground rows' `ground_rgb` where it is; returns the (H, W, 3) float32 image."""
+        the ground rows' `ground_rgb` where it is; returns the (H, W, 3) float32 image. The sky
+        is drawn at a quarter of the resolution and scaled up; only the quarter rows that the
+        image rows with sky read are drawn (the rest stay 0, under the ground)."""
         look = self.look
-        small = (self.w // 4, self.h // 4)
-        rx, ry, rz = (cv2.resize(r, small, interpolation=cv2.INTER_AREA) for r in geo.rays)
+        rows = self._sky_rows(geo.ground)
+        small = np.zeros((self.h // 4, self.w // 4, 3), np.float32)
+        rays = (r[: 4 * rows] if rows < self.h // 4 else r for r in geo.rays)
+        rx, ry, rz = (cv2.resize(r, (self.w // 4, rows), interpolation=cv2.INTER_AREA)
+                      for r in rays)
         elev = np.arctan2(rz, np.sqrt(rx * rx + ry * ry))
         az = (np.arctan2(ry, rx) + pose[2]) % (2 * np.pi)
         b = (az * (SKY_BINS / (2 * np.pi))).astype(np.int32) % SKY_BINS
@@ -558,10 +563,20 @@ class FrameRenderer:
         bcol = look.skyline_rgb[(b // 37) % len(look.skyline_rgb)]
         windows = ((b % 7) < 3) & ((elev * 150.0) % 3.0 < 1.4) & (look.skyline_elev[b] > 0.05)
         bcol = bcol * np.where(windows, 0.6, 1.0)[..., None] * look.gain
-        sky = np.where(building[..., None], bcol, sky).astype(np.float32)
-        rgb = cv2.resize(sky, (self.w, self.h), interpolation=cv2.INTER_LINEAR)
-        np.copyto(rgb[geo.rows], ground_rgb, where=geo.ground_rows[:, :, None])
+        small[:rows] = np.where(building[..., None], bcol, sky)
+        rgb = cv2.resize(small, (self.w, self.h), interpolation=cv2.INTER_LINEAR)
+        cv2.copyTo(ground_rgb, geo.ground_rows.view(np.uint8), rgb[geo.rows])
         return rgb
+
+    def _sky_rows(self, ground) -> int:
+        """How many rows of the quarter-resolution sky the image rows with sky read: a linear
+        upscale by 4 reads quarter rows floor((v + 0.5) / 4 - 0.5) and the one below."""
+        sky = np.flatnonzero(~ground.all(axis=1))
+        if self.h % 4:  # the quarter image is not a 4 x 4 block average of whole rows
+            return self.h // 4
+        if sky.size == 0:
+            return 1
+        return min(self.h // 4, int(sky[-1]) // 4 + 2)
 
     def _vehicle_items(self, pose, T_vehicle_camera, vehicles):
         """(image hull int32, vehicle, corner pixels) of other vehicles, far to near; vehicles
