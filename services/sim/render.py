@@ -332,24 +332,66 @@ class FrameRenderer:
             for _ in range(4)
         ]
 
-    def _surface(self, window, mx, my, ground, camera_xy):
+    def _surface(self, window, mx, my, ground, camera_xy, origin_m=None):
         """(surface, x0, y0): the (road, paint, curb, sidewalk) masks (`_surface_masks`) of the
         label window, or with `jumps` of the box of it from cell (x0, y0) on that this frame's
         remaps read: the ground points (mx, my) and the points between them and the camera's
         ground point (`camera_xy`, window coordinates: `_raised`), which lie in the same box.
         A frame at a random pose sees about a quarter of its window. The box's masks are the
         whole window's where the frame reads them: the box has a margin wider than the blur
-        and the rings reach, and starts on the rings' 4-cell grid."""
+        and the rings reach, and starts on the rings' 4-cell grid. `origin_m`: the window's
+        world origin (x0, y0), to carry the last window's masks over (`_window_masks`)."""
         if not self.jumps:
             if self._surface_cache is None or self._surface_cache[0] is not window:
-                self._surface_cache = (window, self._surface_masks(window))
-            return self._surface_cache[1], 0, 0
+                masks = self._window_masks(window, origin_m)
+                self._surface_cache = (window, origin_m, masks)
+            return self._surface_cache[2], 0, 0
         box = _read_box(mx[ground], my[ground], camera_xy, self._surface_margin_cells(),
                         window.shape)
         if box is None:  # every read is off the window
             return _NO_SURFACE, 0, 0
         (x0, x1), (y0, y1) = box
         return self._surface_masks(window[y0:y1, x0:x1]), x0, y0
+
+    def _window_masks(self, window, origin_m):
+        """_surface_masks of a drive's next label window, which overlaps the last one: the
+        last window's masks where the two agree (the overlap, but for a margin along the
+        sides it does not share with both windows: there either window's edge is near), the
+        masks of boxes of the new window (`_box_masks`) in the strips around that. A window
+        moves by whole tiles, on the rings' 4-cell grid. Same bytes as the whole window's."""
+        last = self._surface_cache
+        if origin_m is None or last is None or last[1] is None or last[0].shape != window.shape:
+            return self._surface_masks(window)
+        shift = [round((o - p) / self.labeler.cell_m) for o, p in zip(origin_m, last[1],
+                                                                      strict=True)]
+        margin = self._surface_margin_cells()
+        keep = []  # per axis (rows, cols): the new window's span the last masks hold
+        for d, n in ((shift[1], window.shape[0]), (shift[0], window.shape[1])):
+            lo, hi = max(0, -d) + margin * (d != 0), min(n, n - d) - margin * (d != 0)
+            if hi - lo < 4 or d % 4:
+                return self._surface_masks(window)
+            keep.append((lo, hi))
+        (y0, y1), (x0, x1) = keep
+        dx, dy = shift
+        masks = np.empty(window.shape + (4,), np.uint8)
+        masks[y0:y1, x0:x1] = last[2][y0 + dy : y1 + dy, x0 + dx : x1 + dx]
+        rows, cols = window.shape
+        strips = (((0, y0), (0, cols)), ((y1, rows), (0, cols)),
+                  ((y0, y1), (0, x0)), ((y0, y1), (x1, cols)))
+        for (ya, yb), (xa, xb) in strips:
+            if ya < yb and xa < xb:
+                masks[ya:yb, xa:xb] = self._box_masks(window, (ya, yb), (xa, xb), margin)
+        return masks
+
+    def _box_masks(self, window, rows, cols, margin: int):
+        """The whole window's _surface_masks of the cells rows x cols (spans), from a box of
+        the window `margin` cells wider on the 4-cell grid (see _surface)."""
+        box = []
+        for (lo, hi), n in ((rows, window.shape[0]), (cols, window.shape[1])):
+            box.append((max(lo - margin, 0) // 4 * 4, min(-(-(hi + margin) // 4) * 4, n)))
+        (ya, yb), (xa, xb) = box
+        masks = self._surface_masks(window[ya:yb, xa:xb])
+        return masks[rows[0] - ya : rows[1] - ya, cols[0] - xa : cols[1] - xa]
 
     def _ring_cells(self) -> tuple:
         """(curb, sidewalk) band widths in label cells (the sidewalk's from the road, through
@@ -419,7 +461,8 @@ class FrameRenderer:
         if not (rgb or self.look.curb):
             return lab, geo, (None, mx[geo.rows], my[geo.rows]), None
         camera_xy = self._camera_cell(pose, T_vehicle_camera)
-        surface = self._surface(window, mx, my, geo.ground, camera_xy)
+        _, x0, y0 = self.labeler.tiles.window(pose[0], pose[1])  # cached: the same window
+        surface = self._surface(window, mx, my, geo.ground, camera_xy, origin_m=(x0, y0))
         mx, my = mx[geo.rows], my[geo.rows]
         raised = self._raised(T_vehicle_camera, geo, surface, camera_xy, mx, my)
         if raised is not None:
