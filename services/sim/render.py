@@ -607,8 +607,19 @@ class FrameRenderer:
         windows = ((b % 7) < 3) & ((elev * 150.0) % 3.0 < 1.4) & (look.skyline_elev[b] > 0.05)
         bcol = bcol * np.where(windows, 0.6, 1.0)[..., None] * look.gain
         small[:rows] = np.where(building[..., None], bcol, sky)
-        rgb = cv2.resize(small, (self.w, self.h), interpolation=cv2.INTER_LINEAR)
+        rgb = self._upscale_sky(small, rows)
         cv2.copyTo(ground_rgb, geo.ground_rows.view(np.uint8), rgb[geo.rows])
+        return rgb
+
+    def _upscale_sky(self, small, rows: int) -> np.ndarray:
+        """The (H, W, 3) image of the quarter-resolution sky, the image rows that read only its
+        first `rows` rows scaled up from those alone (a linear upscale by 4 from fewer rows
+        reads the same rows with the same weights; the rows below are ground)."""
+        if 4 * rows + 8 > self.h or self.h % 4 or self.w % 4:
+            return cv2.resize(small, (self.w, self.h), interpolation=cv2.INTER_LINEAR)
+        rgb = np.empty((self.h, self.w, 3), np.float32)
+        cv2.resize(small[: rows + 1], (self.w, 4 * (rows + 1)), dst=rgb[: 4 * (rows + 1)],
+                   interpolation=cv2.INTER_LINEAR)
         return rgb
 
     def _sky_rows(self, ground) -> int:
@@ -711,10 +722,11 @@ def _toward(m: np.ndarray, c, k, ground: np.ndarray) -> np.ndarray:
 def _remap_wrap(tex: np.ndarray, wx: np.ndarray, wy: np.ndarray, res_m: float) -> np.ndarray:
     """A world-anchored tileable texture (res_m per texel) at world points (wx, wy)."""
     n = np.float32(tex.shape[0])
+    power_of_two = tex.shape[0] & (tex.shape[0] - 1) == 0  # then / n is exactly * (1 / n)
     maps = []
     for w in (wx, wy):
         m = w * np.float32(1.0 / res_m)
-        q = m / n
+        q = m * (np.float32(1.0) / n) if power_of_two else m / n
         np.floor(q, out=q)
         q *= n
         m -= q  # wrap explicitly: keeps float32 precision far from 0
