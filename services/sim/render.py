@@ -324,7 +324,8 @@ class FrameRenderer:
         yy, xx = np.mgrid[0 : self.h, 0 : self.w].astype(np.float32)
         r2 = ((xx - self.w / 2) / self.w) ** 2 + ((yy - self.h / 2) / self.h) ** 2
         self.vignette = cv2.merge([(1.0 - 0.35 * r2).astype(np.float32)] * 3)
-        self._surface_cache = None  # (window, its masks): kept while frames stay in it
+        self._surface_cache = None  # (window, origin, its masks): kept while frames stay in it
+        self._spare_masks = None  # the masks before those: the next window's buffer
         gamma = self.rng.uniform(0.8, 1.25)
         self.tone = np.clip(255.0 * (np.arange(256) / 255.0) ** gamma, 0, 255).astype(np.uint8)
         self.noise = [
@@ -373,7 +374,10 @@ class FrameRenderer:
             keep.append((lo, hi))
         (y0, y1), (x0, x1) = keep
         dx, dy = shift
-        masks = np.empty(window.shape + (4,), np.uint8)
+        masks = self._spare_masks  # written over: filling fresh pages costs more than copying
+        if masks is None or masks.shape[:2] != window.shape:
+            masks = np.empty(window.shape + (4,), np.uint8)
+        self._spare_masks = last[2]
         masks[y0:y1, x0:x1] = last[2][y0 + dy : y1 + dy, x0 + dx : x1 + dx]
         rows, cols = window.shape
         strips = (((0, y0), (0, cols)), ((y1, rows), (0, cols)),
