@@ -41,7 +41,8 @@ class GroundRays:
         distances, the ground mask (H, W) and the rays (rx, ry, rz) of every pixel. Only the
         rows below the horizon are intersected with the ground (about half of them)."""
         R, t = T_vehicle_camera[:3, :3].astype(np.float32), T_vehicle_camera[:3, 3]
-        rx, ry, rz = (_affine(self.xc, self.yc, R[i]) for i in range(3))
+        tmp = np.empty_like(self.xc)  # one scratch plane: fresh (H, W) temporaries cost more
+        rx, ry, rz = (_affine(self.xc, self.yc, R[i], tmp) for i in range(3))
         down = rz < -1e-4
         rows = _row_span(down)
         rx_b, ry_b, rz_b, down_b = rx[rows], ry[rows], rz[rows], down[rows]
@@ -62,10 +63,10 @@ class GroundRays:
         return rows, gx, gy, dist, ok, (rx, ry, rz)
 
 
-def _affine(xc: np.ndarray, yc: np.ndarray, r) -> np.ndarray:
-    """r[0] xc + r[1] yc + r[2] (float32, in this order of operations)."""
-    out = r[0] * xc
-    out += r[1] * yc
+def _affine(xc: np.ndarray, yc: np.ndarray, r, tmp: np.ndarray) -> np.ndarray:
+    """r[0] xc + r[1] yc + r[2] (float32, in this order of operations; `tmp`: scratch)."""
+    out = np.multiply(xc, r[0])
+    out += np.multiply(yc, r[1], out=tmp)
     out += r[2]
     return out
 
@@ -326,6 +327,7 @@ class FrameRenderer:
         self.vignette = cv2.merge([(1.0 - 0.35 * r2).astype(np.float32)] * 3)
         self._surface_cache = None  # (window, origin, its masks): kept while frames stay in it
         self._spare_masks = None  # the masks before those: the next window's buffer
+        self._skyline = None  # (gain, _skyline_bins()): the skyline's colours at that gain
         gamma = self.rng.uniform(0.8, 1.25)
         self.tone = np.clip(255.0 * (np.arange(256) / 255.0) ** gamma, 0, 255).astype(np.uint8)
         self.noise = [
@@ -523,8 +525,9 @@ class FrameRenderer:
         paint *= np.float32(1 / 0.45)
         np.clip(paint, 0.0, 1.0, out=paint)
         # contiguous planes: numpy on a channel of a 2-channel image takes 5x the time
-        grain, wear = cv2.split(_remap_wrap(look.fine, geo.wx, geo.wy, 0.04))
-        blotch, mix = cv2.split(_remap_wrap(look.coarse, geo.wx, geo.wy, 0.5))
+        textures = _TextureMaps(geo.wx, geo.wy)
+        grain, wear = cv2.split(textures.remap(look.fine, 0.04))
+        blotch, mix = cv2.split(textures.remap(look.coarse, 0.5))
         tex = self._texture(geo.dist, grain, blotch)
         wear -= look.wear_level
         wear *= 4.0
@@ -538,7 +541,7 @@ class FrameRenderer:
         fog = geo.dist * np.float32(1.0 / look.fog_m)
         np.clip(fog, 0.0, 1.0, out=fog)
         np.power(fog, 1.5, out=fog)
-        keep = self._shade(geo.wx, geo.wy, t_s)
+        keep = self._shade(textures, t_s)
         keep *= np.subtract(1.0, fog)
         a = tex
         a *= keep
@@ -580,11 +583,11 @@ class FrameRenderer:
         tex *= blotch
         return tex
 
-    def _shade(self, wx, wy, t_s):
+    def _shade(self, textures, t_s):
         """Exposure (with clouds) times the world-anchored shadows."""
         look = self.look
         gain = np.float32(look.gain * (1.0 + look.gain_wobble * math.sin(0.07 * t_s)))
-        shade = _remap_wrap(look.shadow, wx, wy, 0.25)
+        shade = textures.remap(look.shadow, 0.25)
         shade *= look.shadow_strength
         np.subtract(1.0, shade, out=shade)
         shade *= gain
@@ -604,13 +607,16 @@ class FrameRenderer:
         elev = np.arctan2(rz, np.sqrt(rx * rx + ry * ry))
         az = (np.arctan2(ry, rx) + pose[2]) % (2 * np.pi)
         b = (az * (SKY_BINS / (2 * np.pi))).astype(np.int32) % SKY_BINS
-        t = np.clip(elev / 0.5, 0.0, 1.0)[..., None]
-        sky = look.haze_rgb + (look.sky_top - look.haze_rgb) * t
+        t = np.clip(elev / 0.5, 0.0, 1.0)
         building = (elev < look.skyline_elev[b]) & (elev > -0.03)
-        bcol = look.skyline_rgb[(b // 37) % len(look.skyline_rgb)]
-        windows = ((b % 7) < 3) & ((elev * 150.0) % 3.0 < 1.4) & (look.skyline_elev[b] > 0.05)
-        bcol = bcol * np.where(windows, 0.6, 1.0)[..., None] * look.gain
-        small[:rows] = np.where(building[..., None], bcol, sky)
+        if self._skyline is None or self._skyline[0] != look.gain:
+            self._skyline = (look.gain, self._skyline_bins())
+        lit, lit_rgb, unlit_rgb = self._skyline[1]
+        windows = lit[b] & ((elev * 150.0) % 3.0 < 1.4)
+        for c in range(3):  # per plane: (rows, W / 4, 3) broadcasts take 5x the time
+            sky = look.haze_rgb[c] + (look.sky_top[c] - look.haze_rgb[c]) * t
+            bcol = np.where(windows, lit_rgb[c][b], unlit_rgb[c][b])
+            small[:rows, :, c] = np.where(building, bcol, sky)
         rgb = self._upscale_sky(small, rows)
         cv2.copyTo(ground_rgb, geo.ground_rows.view(np.uint8), rgb[geo.rows])
         return rgb
@@ -625,6 +631,15 @@ class FrameRenderer:
         cv2.resize(small[: rows + 1], (self.w, 4 * (rows + 1)), dst=rgb[: 4 * (rows + 1)],
                    interpolation=cv2.INTER_LINEAR)
         return rgb
+
+    def _skyline_bins(self):
+        """Per azimuth bin of the skyline: whether its building has lit windows (the rows of
+        them are per pixel), and its colour planes with and without them (float64)."""
+        look = self.look
+        bins = np.arange(SKY_BINS)
+        lit = ((bins % 7) < 3) & (look.skyline_elev > 0.05)
+        base = look.skyline_rgb[(bins // 37) % len(look.skyline_rgb)].astype(np.float64)
+        return lit, (base * 0.6 * look.gain).T.copy(), (base * 1.0 * look.gain).T.copy()
 
     def _sky_rows(self, ground) -> int:
         """How many rows of the quarter-resolution sky the image rows with sky read: a linear
@@ -723,19 +738,39 @@ def _toward(m: np.ndarray, c, k, ground: np.ndarray) -> np.ndarray:
     return out
 
 
-def _remap_wrap(tex: np.ndarray, wx: np.ndarray, wy: np.ndarray, res_m: float) -> np.ndarray:
-    """A world-anchored tileable texture (res_m per texel) at world points (wx, wy)."""
-    n = np.float32(tex.shape[0])
-    power_of_two = tex.shape[0] & (tex.shape[0] - 1) == 0  # then / n is exactly * (1 / n)
-    maps = []
-    for w in (wx, wy):
-        m = w * np.float32(1.0 / res_m)
-        q = m * (np.float32(1.0) / n) if power_of_two else m / n
-        np.floor(q, out=q)
-        q *= n
-        m -= q  # wrap explicitly: keeps float32 precision far from 0
-        maps.append(m)
-    return cv2.remap(tex, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+class _TextureMaps:
+    """World-anchored tileable textures at a frame's ground points (wx, wy). A texture of n
+    texels at res_m repeats every n res_m metres; the points are wrapped into its period
+    explicitly (keeps float32 precision far from 0). Textures of one period whose n and 1 /
+    res_m are powers of two share the wrap (scaling by a power of two is exact: the maps are
+    the same bytes as wrapping each texture's own)."""
+
+    def __init__(self, wx: np.ndarray, wy: np.ndarray):
+        self.wx, self.wy = wx, wy
+        self._wrapped = {}  # period (m) -> the points wrapped into it
+
+    def remap(self, tex: np.ndarray, res_m: float) -> np.ndarray:
+        n, scale = tex.shape[0], 1.0 / res_m
+        if _power_of_two(n) and _power_of_two(scale):
+            period = n * res_m
+            if period not in self._wrapped:
+                self._wrapped[period] = [_wrap(w, period) for w in (self.wx, self.wy)]
+            maps = [w * np.float32(scale) for w in self._wrapped[period]]
+        else:
+            maps = [_wrap(w * np.float32(scale), n) for w in (self.wx, self.wy)]
+        return cv2.remap(tex, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+
+
+def _wrap(m: np.ndarray, n: float) -> np.ndarray:
+    """m - floor(m / n) n (float32): m wrapped into [0, n)."""
+    q = m * (np.float32(1.0) / np.float32(n)) if _power_of_two(n) else m / np.float32(n)
+    np.floor(q, out=q)  # / n is exactly * (1 / n) for a power of two
+    q *= np.float32(n)
+    return np.subtract(m, q, out=q)
+
+
+def _power_of_two(x: float) -> bool:
+    return x > 0 and math.frexp(x)[0] == 0.5
 
 
 _NO_SURFACE = np.zeros((1, 1, 4), np.uint8)  # a frame that reads nothing of its window
