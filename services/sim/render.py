@@ -34,33 +34,49 @@ class GroundRays:
         norm = undistort_normalized(uv, camera.K, camera.dist)
         self.xc = norm[:, 0].reshape(camera.height, camera.width).astype(np.float32)
         self.yc = norm[:, 1].reshape(camera.height, camera.width).astype(np.float32)
+        # per image row, the ranges of xc and yc: bound the rows a rotation turns downwards
+        self._row_ranges = [f(c, axis=1).astype(np.float64) for c in (self.xc, self.yc)
+                            for f in (np.min, np.max)]
 
     def ground(self, T_vehicle_camera: np.ndarray, max_range_m: float = 250.0):
-        """(rows, gx, gy, dist, ok, rays): the image rows that see the ground (a slice: every
+        """(rows, gx, gy, dist, ok, R): the image rows that see the ground (a slice: every
         ground pixel is in them), their ground points (gx, gy) in the vehicle frame and
-        distances, the ground mask (H, W) and the rays (rx, ry, rz) of every pixel. Only the
-        rows below the horizon are intersected with the ground (about half of them)."""
+        distances, the ground mask (H, W) and the camera's rotation (float32). Only the rows
+        that can look down (about the lower half) are intersected with the ground."""
         R, t = T_vehicle_camera[:3, :3].astype(np.float32), T_vehicle_camera[:3, 3]
-        tmp = np.empty_like(self.xc)  # one scratch plane: fresh (H, W) temporaries cost more
-        rx, ry, rz = (_affine(self.xc, self.yc, R[i], tmp) for i in range(3))
+        rows = self._rows_down(R)
+        rx, ry, rz = self.rays(R, rows)
         down = rz < -1e-4
-        rows = _row_span(down)
-        rx_b, ry_b, rz_b, down_b = rx[rows], ry[rows], rz[rows], down[rows]
-        lam = np.float32(-t[2]) / np.where(down_b, rz_b, np.float32(-1.0))
-        dist = np.multiply(rx_b, rx_b)
-        dist += np.square(ry_b)
+        lam = np.float32(-t[2]) / np.where(down, rz, np.float32(-1.0))
+        dist = np.multiply(rx, rx)
+        dist += np.square(ry)
         np.sqrt(dist, out=dist)
         dist *= lam  # lam * horiz
-        ok_b = down_b & (dist < max_range_m)
-        np.copyto(lam, np.float32(0.0), where=~ok_b)
-        np.copyto(dist, np.float32(max_range_m), where=~ok_b)
-        gx = lam * rx_b
+        ok_rows = down & (dist < max_range_m)
+        np.copyto(lam, np.float32(0.0), where=~ok_rows)
+        np.copyto(dist, np.float32(max_range_m), where=~ok_rows)
+        gx = lam * rx
         gx += np.float32(t[0])
-        gy = lam * ry_b
+        gy = lam * ry
         gy += np.float32(t[1])
-        ok = np.zeros_like(down)
-        ok[rows] = ok_b
-        return rows, gx, gy, dist, ok, (rx, ry, rz)
+        ok = np.zeros((self.height, self.width), bool)
+        ok[rows] = ok_rows
+        return rows, gx, gy, dist, ok, R
+
+    def rays(self, R: np.ndarray, rows: slice) -> tuple:
+        """(rx, ry, rz) in the vehicle frame of the pixels of image `rows` (float32)."""
+        xc, yc = self.xc[rows], self.yc[rows]
+        tmp = np.empty_like(xc)  # one scratch plane: fresh temporaries cost more
+        return tuple(_affine(xc, yc, R[i], tmp) for i in range(3))
+
+    def _rows_down(self, R: np.ndarray) -> slice:
+        """The rows from the first to the last with a ray that may point down (rz < -1e-4):
+        a row's rz is at least the sum of its terms' minima over its ranges of xc and yc
+        (float64; the 1e-3 slack covers float32 rounding many times over)."""
+        x_lo, x_hi, y_lo, y_hi = self._row_ranges
+        r20, r21, r22 = (float(r) for r in R[2])
+        rz_lo = np.minimum(r20 * x_lo, r20 * x_hi) + np.minimum(r21 * y_lo, r21 * y_hi) + r22
+        return _row_span(rz_lo < -1e-4 + 1e-3)
 
 
 def _affine(xc: np.ndarray, yc: np.ndarray, r, tmp: np.ndarray) -> np.ndarray:
@@ -71,12 +87,12 @@ def _affine(xc: np.ndarray, yc: np.ndarray, r, tmp: np.ndarray) -> np.ndarray:
     return out
 
 
-def _row_span(mask: np.ndarray) -> slice:
-    """The rows from the first to the last that hold a True of `mask` (its last row if none:
+def _row_span(rows_down: np.ndarray) -> slice:
+    """The rows from the first to the last True of `rows_down` (per row; the last row if none:
     the band is never empty)."""
-    rows = np.flatnonzero(mask.any(axis=1))
+    rows = np.flatnonzero(rows_down)
     if rows.size == 0:
-        return slice(mask.shape[0] - 1, mask.shape[0])
+        return slice(rows_down.shape[0] - 1, rows_down.shape[0])
     return slice(int(rows[0]), int(rows[-1]) + 1)
 
 
@@ -87,7 +103,7 @@ class FrameGeometry:
     wy: np.ndarray
     dist: np.ndarray  # metres from the camera along the ground
     ground: np.ndarray  # bool (H, W): the ray hits the ground inside the range
-    rays: tuple  # (rx, ry, rz) in the vehicle frame, (H, W) each
+    R_vehicle_camera: np.ndarray  # the camera's rotation (float32): GroundRays.rays
 
     @property
     def ground_rows(self) -> np.ndarray:
@@ -111,7 +127,7 @@ class LabelRenderer:
         self.cell_m = cell_m
 
     def geometry(self, pose, T_vehicle_camera) -> FrameGeometry:
-        rows, gx, gy, dist, ok, rays = self.rays.ground(T_vehicle_camera)
+        rows, gx, gy, dist, ok, R = self.rays.ground(T_vehicle_camera)
         c, s = np.float32(math.cos(pose[2])), np.float32(math.sin(pose[2]))
         wx = c * gx
         wx += np.float32(pose[0])
@@ -119,7 +135,7 @@ class LabelRenderer:
         wy = s * gx
         wy += np.float32(pose[1])
         wy += c * gy
-        return FrameGeometry(rows, wx, wy, dist, ok, rays)
+        return FrameGeometry(rows, wx, wy, dist, ok, R)
 
     def labels(self, pose, T_vehicle_camera, geo: FrameGeometry | None = None):
         """(labels (H, W) uint8, geometry, (window, mx, my)) for a vehicle pose (x, y, yaw):
@@ -506,6 +522,33 @@ class FrameRenderer:
         lighting and haze of the ground rows, as one (rows, W, 3) float32 image (`surface`:
         _surface's; mx, my: the rows' window coordinates)."""
         look = self.look
+        # 1. how much of each pixel is road, paint, curb top, sidewalk and curb face
+        cover = self._cover(surface, mx, my, raised)
+        # 2. world-anchored textures: asphalt grain and blotches, paint wear, roadside mix
+        textures = _TextureMaps(geo.wx, geo.wy)
+        grain, wear = cv2.split(textures.remap(look.fine, 0.04))  # contiguous planes: numpy
+        blotch, mix = cv2.split(textures.remap(look.coarse, 0.5))  # on a channel takes 5x
+        tex = self._texture(geo.dist, grain, blotch)
+        cover["paint"] *= self._paint_left(wear)
+        _ramp(mix, 0.5, 4.0)  # patches of the second roadside
+        # 3. light: shadows and exposure, haze with distance
+        fog = geo.dist * np.float32(1.0 / look.fog_m)
+        np.clip(fog, 0.0, 1.0, out=fog)
+        np.power(fog, 1.5, out=fog)
+        keep = self._shade(textures, t_s)
+        keep *= np.subtract(1.0, fog)
+        # 4. the colour planes: surfaces under texture and paint, in light, through haze
+        a = tex
+        a *= keep
+        a *= np.subtract(1.0, cover["paint"])
+        b = cover["paint"]
+        b *= keep
+        return self._colours(cover, mix, a, b, fog)
+
+    def _cover(self, surface, mx, my, raised) -> dict:
+        """Per-pixel weights (float32 planes) of the surfaces: road and paint at the ground
+        point; with raised curbs (`raised`), the curb top, sidewalk and curb face, which hide
+        the road and paint behind them (None without curbs)."""
         surf = _remap_surface(surface, mx, my)
         road, paint = _unit_channel(surf, 0), _unit_channel(surf, 1)
         curb = walk = face = None
@@ -524,47 +567,30 @@ class FrameRenderer:
         paint -= 0.27  # re-sharpen
         paint *= np.float32(1 / 0.45)
         np.clip(paint, 0.0, 1.0, out=paint)
-        # contiguous planes: numpy on a channel of a 2-channel image takes 5x the time
-        textures = _TextureMaps(geo.wx, geo.wy)
-        grain, wear = cv2.split(textures.remap(look.fine, 0.04))
-        blotch, mix = cv2.split(textures.remap(look.coarse, 0.5))
-        tex = self._texture(geo.dist, grain, blotch)
-        wear -= look.wear_level
-        wear *= 4.0
-        np.clip(wear, 0.0, 1.0, out=wear)
-        wear *= np.float32(look.fade)
-        paint *= wear
-        mix -= 0.5  # patches of the second roadside
-        mix *= 4.0
-        mix += 0.5
-        np.clip(mix, 0.0, 1.0, out=mix)
-        fog = geo.dist * np.float32(1.0 / look.fog_m)
-        np.clip(fog, 0.0, 1.0, out=fog)
-        np.power(fog, 1.5, out=fog)
-        keep = self._shade(textures, t_s)
-        keep *= np.subtract(1.0, fog)
-        a = tex
-        a *= keep
-        a *= np.subtract(1.0, paint)
-        b = paint
-        b *= keep
-        off = np.subtract(1.0, road)
-        for m in (curb, walk, face):
-            if m is not None:
-                off -= m
+        return {"road": road, "paint": paint, "curb": curb, "walk": walk, "face": face}
+
+    def _colours(self, cover, mix, a, b, fog) -> np.ndarray:
+        """(rows, W, 3): the surfaces' colours weighted by `cover` (roadside: its two colours
+        by `mix`), times `a` (texture and light, without paint), plus paint times `b` and haze
+        times `fog`."""
+        look = self.look
+        off = np.subtract(1.0, cover["road"])
+        raised = [cover[k] for k in ("curb", "walk", "face") if cover[k] is not None]
+        for m in raised:
+            off -= m
         np.clip(off, 0.0, 1.0, out=off)
-        planes, tmp = [], np.empty_like(road)
-        face_gain = np.float32(look.curb_face)
+        planes, tmp = [], np.empty_like(off)
         for c in range(3):
             # per colour plane: (rows, W) x scalar ops are far cheaper than x (3,) broadcasts
             ground = np.multiply(mix, look.offroad2_rgb[c] - look.offroad_rgb[c])
             ground += look.offroad_rgb[c]
             ground *= off
-            layers = [(road, look.asphalt_rgb[c])]
-            if raised is not None:
-                layers += [(curb, look.curb_rgb[c]), (face, look.curb_rgb[c] * face_gain),
-                           (walk, look.sidewalk_rgb[c])]
-            for m, colour in layers:  # without curbs those are 0: adding 0 changes nothing
+            layers = [(cover["road"], look.asphalt_rgb[c])]
+            if raised:  # without curbs their weights are 0: adding 0 changes nothing
+                curb_face_rgb = look.curb_rgb[c] * np.float32(look.curb_face)
+                layers += [(cover["curb"], look.curb_rgb[c]), (cover["face"], curb_face_rgb),
+                           (cover["walk"], look.sidewalk_rgb[c])]
+            for m, colour in layers:
                 ground += np.multiply(m, colour, out=tmp)
             ground *= a
             ground += np.multiply(b, look.paint_rgb[c], out=tmp)
@@ -582,6 +608,14 @@ class FrameRenderer:
         tex += 1.0
         tex *= blotch
         return tex
+
+    def _paint_left(self, wear):
+        """How much of the paint is left (in place on the `wear` texture)."""
+        wear -= self.look.wear_level
+        wear *= 4.0
+        np.clip(wear, 0.0, 1.0, out=wear)
+        wear *= np.float32(self.look.fade)
+        return wear
 
     def _shade(self, textures, t_s):
         """Exposure (with clouds) times the world-anchored shadows."""
@@ -601,7 +635,8 @@ class FrameRenderer:
         look = self.look
         rows = self._sky_rows(geo.ground)
         small = np.zeros((self.h // 4, self.w // 4, 3), np.float32)
-        rays = (r[: 4 * rows] if rows < self.h // 4 else r for r in geo.rays)
+        full = slice(0, 4 * rows if rows < self.h // 4 else self.h)
+        rays = self.labeler.rays.rays(geo.R_vehicle_camera, full)
         rx, ry, rz = (cv2.resize(r, (self.w // 4, rows), interpolation=cv2.INTER_AREA)
                       for r in rays)
         elev = np.arctan2(rz, np.sqrt(rx * rx + ry * ry))
@@ -727,6 +762,14 @@ def _unit_channel(image: np.ndarray, c: int) -> np.ndarray:
     out = cv2.extractChannel(image, c).astype(np.float32)  # a strided astype: 2.5x the time
     out *= np.float32(1 / 255)
     return out
+
+
+def _ramp(x: np.ndarray, mid: float, gain: float) -> np.ndarray:
+    """clip((x - mid) gain + mid, 0, 1), in place (float32)."""
+    x -= mid
+    x *= gain
+    x += mid
+    return np.clip(x, 0.0, 1.0, out=x)
 
 
 def _toward(m: np.ndarray, c, k, ground: np.ndarray) -> np.ndarray:
