@@ -513,9 +513,9 @@ class FrameRenderer:
 
     # -- layers --------------------------------------------------------------------------------
     # The ground layers work on the ground rows only, in place on float32 planes: (H, W)
-    # temporaries cost more than the arithmetic. Each in-place sequence does the original
-    # expression's operations in its order (a + b == b + a, a * b == b * a are exact), so
-    # the pixels are the same bytes.
+    # temporaries cost more than the arithmetic. Each in-place sequence keeps its formula's
+    # order of operations (a + b == b + a and a * b == b * a are exact, a regrouping is not):
+    # the images are the same bytes as the formulas written out, which the model trained on.
 
     def _ground(self, geo, surface, mx, my, t_s, raised=None):
         """Asphalt / roadside with texture, raised curbs and sidewalks, worn paint, shadows,
