@@ -34,31 +34,81 @@ class GroundRays:
         norm = undistort_normalized(uv, camera.K, camera.dist)
         self.xc = norm[:, 0].reshape(camera.height, camera.width).astype(np.float32)
         self.yc = norm[:, 1].reshape(camera.height, camera.width).astype(np.float32)
+        # per image row, the ranges of xc and yc: bound the rows a rotation turns downwards
+        self._row_ranges = [f(c, axis=1).astype(np.float64) for c in (self.xc, self.yc)
+                            for f in (np.min, np.max)]
 
     def ground(self, T_vehicle_camera: np.ndarray, max_range_m: float = 250.0):
-        """Ground points (gx, gy) in the vehicle frame, their distance, and the ground mask."""
+        """(rows, gx, gy, dist, ok, R): the image rows that see the ground (a slice: every
+        ground pixel is in them), their ground points (gx, gy) in the vehicle frame and
+        distances, the ground mask (H, W) and the camera's rotation (float32). Only the rows
+        that can look down (about the lower half) are intersected with the ground."""
         R, t = T_vehicle_camera[:3, :3].astype(np.float32), T_vehicle_camera[:3, 3]
-        rx = R[0, 0] * self.xc + R[0, 1] * self.yc + R[0, 2]
-        ry = R[1, 0] * self.xc + R[1, 1] * self.yc + R[1, 2]
-        rz = R[2, 0] * self.xc + R[2, 1] * self.yc + R[2, 2]
+        rows = self._rows_down(R)
+        rx, ry, rz = self.rays(R, rows)
         down = rz < -1e-4
-        lam = np.where(down, np.float32(-t[2]) / np.where(down, rz, -1.0), np.float32(np.inf))
-        horiz = np.sqrt(rx * rx + ry * ry)
-        dist = lam * horiz
-        ok = down & (dist < max_range_m)
-        lam = np.where(ok, lam, 0.0).astype(np.float32)
-        gx = np.float32(t[0]) + lam * rx
-        gy = np.float32(t[1]) + lam * ry
-        return gx, gy, np.where(ok, dist, np.float32(max_range_m)), ok, (rx, ry, rz)
+        lam = np.float32(-t[2]) / np.where(down, rz, np.float32(-1.0))
+        dist = np.multiply(rx, rx)
+        dist += np.square(ry)
+        np.sqrt(dist, out=dist)
+        dist *= lam  # lam * horiz
+        ok_rows = down & (dist < max_range_m)
+        np.copyto(lam, np.float32(0.0), where=~ok_rows)
+        np.copyto(dist, np.float32(max_range_m), where=~ok_rows)
+        gx = lam * rx
+        gx += np.float32(t[0])
+        gy = lam * ry
+        gy += np.float32(t[1])
+        ok = np.zeros((self.height, self.width), bool)
+        ok[rows] = ok_rows
+        return rows, gx, gy, dist, ok, R
+
+    def rays(self, R: np.ndarray, rows: slice) -> tuple:
+        """(rx, ry, rz) in the vehicle frame of the pixels of image `rows` (float32)."""
+        xc, yc = self.xc[rows], self.yc[rows]
+        tmp = np.empty_like(xc)  # one scratch plane: fresh temporaries cost more
+        return tuple(_affine(xc, yc, R[i], tmp) for i in range(3))
+
+    def _rows_down(self, R: np.ndarray) -> slice:
+        """The rows from the first to the last with a ray that may point down (rz < -1e-4):
+        a row's rz is at least the sum of its terms' minima over its ranges of xc and yc
+        (float64; the 1e-3 slack covers float32 rounding many times over)."""
+        x_lo, x_hi, y_lo, y_hi = self._row_ranges
+        r20, r21, r22 = (float(r) for r in R[2])
+        rz_lo = np.minimum(r20 * x_lo, r20 * x_hi) + np.minimum(r21 * y_lo, r21 * y_hi) + r22
+        return _row_span(rz_lo < -1e-4 + 1e-3)
+
+
+def _affine(xc: np.ndarray, yc: np.ndarray, r, tmp: np.ndarray) -> np.ndarray:
+    """r[0] xc + r[1] yc + r[2] (float32, in this order of operations; `tmp`: scratch)."""
+    out = np.multiply(xc, r[0])
+    out += np.multiply(yc, r[1], out=tmp)
+    out += r[2]
+    return out
+
+
+def _row_span(rows_down: np.ndarray) -> slice:
+    """The rows from the first to the last True of `rows_down` (per row; the last row if none:
+    the band is never empty)."""
+    rows = np.flatnonzero(rows_down)
+    if rows.size == 0:
+        return slice(rows_down.shape[0] - 1, rows_down.shape[0])
+    return slice(int(rows[0]), int(rows[-1]) + 1)
 
 
 @dataclass
 class FrameGeometry:
-    wx: np.ndarray  # world x of each pixel's ground point (H, W) float32
+    rows: slice  # the image rows that see the ground; wx, wy and dist are theirs
+    wx: np.ndarray  # world x of each pixel's ground point (rows, W) float32
     wy: np.ndarray
     dist: np.ndarray  # metres from the camera along the ground
-    ground: np.ndarray  # bool: the ray hits the ground inside the range
-    rays: tuple  # (rx, ry, rz) in the vehicle frame
+    ground: np.ndarray  # bool (H, W): the ray hits the ground inside the range
+    R_vehicle_camera: np.ndarray  # the camera's rotation (float32): GroundRays.rays
+
+    @property
+    def ground_rows(self) -> np.ndarray:
+        """The ground mask of `rows`."""
+        return self.ground[self.rows]
 
 
 class LabelRenderer:
@@ -77,23 +127,33 @@ class LabelRenderer:
         self.cell_m = cell_m
 
     def geometry(self, pose, T_vehicle_camera) -> FrameGeometry:
-        gx, gy, dist, ok, rays = self.rays.ground(T_vehicle_camera)
+        rows, gx, gy, dist, ok, R = self.rays.ground(T_vehicle_camera)
         c, s = np.float32(math.cos(pose[2])), np.float32(math.sin(pose[2]))
-        wx = np.float32(pose[0]) + c * gx - s * gy
-        wy = np.float32(pose[1]) + s * gx + c * gy
-        return FrameGeometry(wx, wy, dist, ok, rays)
+        wx = c * gx
+        wx += np.float32(pose[0])
+        wx -= s * gy
+        wy = s * gx
+        wy += np.float32(pose[1])
+        wy += c * gy
+        return FrameGeometry(rows, wx, wy, dist, ok, R)
 
     def labels(self, pose, T_vehicle_camera, geo: FrameGeometry | None = None):
-        """(labels (H, W) uint8, geometry, window) for a vehicle pose (x, y, yaw)."""
+        """(labels (H, W) uint8, geometry, (window, mx, my)) for a vehicle pose (x, y, yaw):
+        mx, my (H, W) are the pixels' label window coordinates (-10 off the ground)."""
         geo = geo or self.geometry(pose, T_vehicle_camera)
         window, x0, y0 = self.tiles.window(pose[0], pose[1])
         inv = np.float32(1.0 / self.cell_m)
-        mx = np.where(geo.ground, (geo.wx - np.float32(x0)) * inv - 0.5, -10.0)
-        my = np.where(geo.ground, (geo.wy - np.float32(y0)) * inv - 0.5, -10.0)
-        mx, my = mx.astype(np.float32), my.astype(np.float32)
-        lab = cv2.remap(
-            window, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
-        )
+        off_ground = ~geo.ground_rows
+        mx, my = (np.full(geo.ground.shape, -10.0, np.float32) for _ in range(2))
+        for m, w, origin in ((mx, geo.wx, x0), (my, geo.wy, y0)):
+            band = m[geo.rows]
+            np.subtract(w, np.float32(origin), out=band)
+            band *= inv
+            band -= 0.5
+            np.copyto(band, np.float32(-10.0), where=off_ground)
+        lab = np.zeros(geo.ground.shape, np.uint8)
+        cv2.remap(window, mx[geo.rows], my[geo.rows], cv2.INTER_NEAREST, dst=lab[geo.rows],
+                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         return lab, geo, (window, mx, my)
 
 
@@ -281,7 +341,9 @@ class FrameRenderer:
         yy, xx = np.mgrid[0 : self.h, 0 : self.w].astype(np.float32)
         r2 = ((xx - self.w / 2) / self.w) ** 2 + ((yy - self.h / 2) / self.h) ** 2
         self.vignette = cv2.merge([(1.0 - 0.35 * r2).astype(np.float32)] * 3)
-        self._surface_cache = None  # (window, its masks): kept while frames stay in it
+        self._surface_cache = None  # (window, origin, its masks): kept while frames stay in it
+        self._spare_masks = None  # the masks before those: the next window's buffer
+        self._skyline = None  # (gain, _skyline_bins()): the skyline's colours at that gain
         gamma = self.rng.uniform(0.8, 1.25)
         self.tone = np.clip(255.0 * (np.arange(256) / 255.0) ** gamma, 0, 255).astype(np.uint8)
         self.noise = [
@@ -289,24 +351,69 @@ class FrameRenderer:
             for _ in range(4)
         ]
 
-    def _surface(self, window, mx, my, ground, camera_xy):
+    def _surface(self, window, mx, my, ground, camera_xy, origin_m=None):
         """(surface, x0, y0): the (road, paint, curb, sidewalk) masks (`_surface_masks`) of the
         label window, or with `jumps` of the box of it from cell (x0, y0) on that this frame's
         remaps read: the ground points (mx, my) and the points between them and the camera's
         ground point (`camera_xy`, window coordinates: `_raised`), which lie in the same box.
         A frame at a random pose sees about a quarter of its window. The box's masks are the
         whole window's where the frame reads them: the box has a margin wider than the blur
-        and the rings reach, and starts on the rings' 4-cell grid."""
+        and the rings reach, and starts on the rings' 4-cell grid. `origin_m`: the window's
+        world origin (x0, y0), to carry the last window's masks over (`_window_masks`)."""
         if not self.jumps:
             if self._surface_cache is None or self._surface_cache[0] is not window:
-                self._surface_cache = (window, self._surface_masks(window))
-            return self._surface_cache[1], 0, 0
+                masks = self._window_masks(window, origin_m)
+                self._surface_cache = (window, origin_m, masks)
+            return self._surface_cache[2], 0, 0
         box = _read_box(mx[ground], my[ground], camera_xy, self._surface_margin_cells(),
                         window.shape)
         if box is None:  # every read is off the window
             return _NO_SURFACE, 0, 0
         (x0, x1), (y0, y1) = box
         return self._surface_masks(window[y0:y1, x0:x1]), x0, y0
+
+    def _window_masks(self, window, origin_m):
+        """_surface_masks of a drive's next label window, which overlaps the last one: the
+        last window's masks where the two agree (the overlap, but for a margin along the
+        sides it does not share with both windows: there either window's edge is near), the
+        masks of boxes of the new window (`_box_masks`) in the strips around that. A window
+        moves by whole tiles, on the rings' 4-cell grid. Same bytes as the whole window's."""
+        last = self._surface_cache
+        if origin_m is None or last is None or last[1] is None or last[0].shape != window.shape:
+            return self._surface_masks(window)
+        shift = [round((o - p) / self.labeler.cell_m) for o, p in zip(origin_m, last[1],
+                                                                      strict=True)]
+        margin = self._surface_margin_cells()
+        keep = []  # per axis (rows, cols): the new window's span the last masks hold
+        for d, n in ((shift[1], window.shape[0]), (shift[0], window.shape[1])):
+            lo, hi = max(0, -d) + margin * (d != 0), min(n, n - d) - margin * (d != 0)
+            if hi - lo < 4 or d % 4:
+                return self._surface_masks(window)
+            keep.append((lo, hi))
+        (y0, y1), (x0, x1) = keep
+        dx, dy = shift
+        masks = self._spare_masks  # written over: filling fresh pages costs more than copying
+        if masks is None or masks.shape[:2] != window.shape:
+            masks = np.empty(window.shape + (4,), np.uint8)
+        self._spare_masks = last[2]
+        masks[y0:y1, x0:x1] = last[2][y0 + dy : y1 + dy, x0 + dx : x1 + dx]
+        rows, cols = window.shape
+        strips = (((0, y0), (0, cols)), ((y1, rows), (0, cols)),
+                  ((y0, y1), (0, x0)), ((y0, y1), (x1, cols)))
+        for (ya, yb), (xa, xb) in strips:
+            if ya < yb and xa < xb:
+                masks[ya:yb, xa:xb] = self._box_masks(window, (ya, yb), (xa, xb), margin)
+        return masks
+
+    def _box_masks(self, window, rows, cols, margin: int):
+        """The whole window's _surface_masks of the cells rows x cols (spans), from a box of
+        the window `margin` cells wider on the 4-cell grid (see _surface)."""
+        box = []
+        for (lo, hi), n in ((rows, window.shape[0]), (cols, window.shape[1])):
+            box.append((max(lo - margin, 0) // 4 * 4, min(-(-(hi + margin) // 4) * 4, n)))
+        (ya, yb), (xa, xb) = box
+        masks = self._surface_masks(window[ya:yb, xa:xb])
+        return masks[rows[0] - ya : rows[1] - ya, cols[0] - xa : cols[1] - xa]
 
     def _ring_cells(self) -> tuple:
         """(curb, sidewalk) band widths in label cells (the sidewalk's from the road, through
@@ -356,31 +463,32 @@ class FrameRenderer:
         camera's ground point `camera_xy`, g the ray's ground point, H the camera height): off
         the road at t, the ray ends on the curb top / sidewalk / verge there; on the road at t
         but off the road at g, it ends on the curb's vertical face. Returns (surface sampled at
-        t, top mask, face mask), or None without curbs."""
+        t, top mask, face mask) of the ground rows (mx, my: theirs), or None without curbs."""
         if not self.look.curb:
             return None
         height = float(T_vehicle_camera[2, 3])
         k = np.float32(max(height - self.look.curb_h_m, 0.05) / height)
-        cx, cy = camera_xy
-        tx = np.where(geo.ground, cx + (mx - cx) * k, -10.0).astype(np.float32)
-        ty = np.where(geo.ground, cy + (my - cy) * k, -10.0).astype(np.float32)
+        ground = geo.ground_rows
+        tx, ty = (_toward(m, c, k, ground) for m, c in zip((mx, my), camera_xy, strict=True))
         surf_t = _remap_surface(surface, tx, ty)
         road_t = surf_t[:, :, 0] >= 128
-        top = geo.ground & ~road_t
-        return surf_t, top, geo.ground & road_t
+        top = ground & ~road_t
+        return surf_t, top, ground & road_t
 
     def _ground_labels(self, pose, T_vehicle_camera, rgb: bool = True):
         """(labels, geometry, (surface, mx, my), raised) of the ground: the road hidden behind
-        a raised island gets label 0. Without `rgb`, the surface masks are computed only for
-        raised curbs (else None)."""
+        a raised island gets label 0. mx, my and raised are of the ground rows (geo.rows).
+        Without `rgb`, the surface masks are computed only for raised curbs (else None)."""
         lab, geo, (window, mx, my) = self.labeler.labels(pose, T_vehicle_camera)
         if not (rgb or self.look.curb):
-            return lab, geo, (None, mx, my), None
+            return lab, geo, (None, mx[geo.rows], my[geo.rows]), None
         camera_xy = self._camera_cell(pose, T_vehicle_camera)
-        surface = self._surface(window, mx, my, geo.ground, camera_xy)
+        _, x0, y0 = self.labeler.tiles.window(pose[0], pose[1])  # cached: the same window
+        surface = self._surface(window, mx, my, geo.ground, camera_xy, origin_m=(x0, y0))
+        mx, my = mx[geo.rows], my[geo.rows]
         raised = self._raised(T_vehicle_camera, geo, surface, camera_xy, mx, my)
         if raised is not None:
-            lab[raised[1]] = 0
+            lab[geo.rows][raised[1]] = 0
         return lab, geo, (surface, mx, my), raised
 
     def labels(self, pose, T_vehicle_camera, vehicles=()) -> np.ndarray:
@@ -396,90 +504,187 @@ class FrameRenderer:
         lab, geo, (surface, mx, my), raised = self._ground_labels(pose, T_vehicle_camera)
         if curb_label is not None and raised is not None:
             surf_t, top, on_face = raised
-            lab[(on_face & (lab == 0)) | (top & (surf_t[:, :, 2] >= 128))] = curb_label
+            band = lab[geo.rows]
+            band[(on_face & (band == 0)) | (top & (surf_t[:, :, 2] >= 128))] = curb_label
         rgb = self._ground(geo, surface, mx, my, t_s, raised)
         rgb = self._sky(rgb, geo, pose)
         rgb = self._vehicles(rgb, lab, pose, T_vehicle_camera, vehicles)
         return self._sensor(rgb), lab
 
     # -- layers --------------------------------------------------------------------------------
-
-    def _remap_wrap(self, tex, wx, wy, res_m):
-        mx = (wx * np.float32(1.0 / res_m)).astype(np.float32)
-        my = (wy * np.float32(1.0 / res_m)).astype(np.float32)
-        n = np.float32(tex.shape[0])
-        mx -= np.floor(mx / n) * n  # wrap explicitly: keeps float32 precision far from 0
-        my -= np.floor(my / n) * n
-        return cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    # The ground layers work on the ground rows only, in place on float32 planes: (H, W)
+    # temporaries cost more than the arithmetic. Each in-place sequence keeps its formula's
+    # order of operations (a + b == b + a and a * b == b * a are exact, a regrouping is not):
+    # the images are the same bytes as the formulas written out, which the model trained on.
 
     def _ground(self, geo, surface, mx, my, t_s, raised=None):
         """Asphalt / roadside with texture, raised curbs and sidewalks, worn paint, shadows,
-        lighting and haze, as three (H, W) colour planes (`surface`: _surface's)."""
+        lighting and haze of the ground rows, as one (rows, W, 3) float32 image (`surface`:
+        _surface's; mx, my: the rows' window coordinates)."""
         look = self.look
+        # 1. how much of each pixel is road, paint, curb top, sidewalk and curb face
+        cover = self._cover(surface, mx, my, raised)
+        # 2. world-anchored textures: asphalt grain and blotches, paint wear, roadside mix
+        textures = _TextureMaps(geo.wx, geo.wy)
+        grain, wear = cv2.split(textures.remap(look.fine, 0.04))  # contiguous planes: numpy
+        blotch, mix = cv2.split(textures.remap(look.coarse, 0.5))  # on a channel takes 5x
+        tex = self._texture(geo.dist, grain, blotch)
+        cover["paint"] *= self._paint_left(wear)
+        _ramp(mix, 0.5, 4.0)  # patches of the second roadside
+        # 3. light: shadows and exposure, haze with distance
+        fog = geo.dist * np.float32(1.0 / look.fog_m)
+        np.clip(fog, 0.0, 1.0, out=fog)
+        np.power(fog, 1.5, out=fog)
+        keep = self._shade(textures, t_s)
+        keep *= np.subtract(1.0, fog)
+        # 4. the colour planes: surfaces under texture and paint, in light, through haze
+        a = tex
+        a *= keep
+        a *= np.subtract(1.0, cover["paint"])
+        b = cover["paint"]
+        b *= keep
+        return self._colours(cover, mix, a, b, fog)
+
+    def _cover(self, surface, mx, my, raised) -> dict:
+        """Per-pixel weights (float32 planes) of the surfaces: road and paint at the ground
+        point; with raised curbs (`raised`), the curb top, sidewalk and curb face, which hide
+        the road and paint behind them (None without curbs)."""
         surf = _remap_surface(surface, mx, my)
-        road, paint, _, _ = (c.astype(np.float32) * np.float32(1 / 255) for c in cv2.split(surf))
-        face = np.zeros_like(road)
-        curb = walk = face
+        road, paint = _unit_channel(surf, 0), _unit_channel(surf, 1)
+        curb = walk = face = None
         if raised is not None:
             surf_t, top, on_face = raised
-            _, _, curb_t, walk_t = (
-                c.astype(np.float32) * np.float32(1 / 255) for c in cv2.split(surf_t)
-            )
-            face = np.clip(1.0 - road, 0.0, 1.0) * on_face  # off the road at g, on it at t
+            face = np.subtract(1.0, road)  # off the road at g, on it at t
+            np.clip(face, 0.0, 1.0, out=face)
+            face *= on_face
             topf = top.astype(np.float32)
-            curb, walk = curb_t * topf, walk_t * topf
-            road = road * (1.0 - topf)  # hidden behind a raised island
-            paint = paint * (1.0 - topf)
-        paint = np.clip((paint - 0.27) * np.float32(1 / 0.45), 0.0, 1.0)  # re-sharpen
-        wx, wy = geo.wx, geo.wy
-        grain, wear = cv2.split(self._remap_wrap(look.fine, wx, wy, 0.04))
-        blotch, mix = cv2.split(self._remap_wrap(look.coarse, wx, wy, 0.5))
-        near = np.clip(1.0 - geo.dist * np.float32(1 / 40.0), 0.0, 1.0)
-        tex = (1.0 + (grain - 1.0) * near) * blotch
-        paint *= np.clip((wear - look.wear_level) * 4.0, 0.0, 1.0) * np.float32(look.fade)
-        mix = np.clip((mix - 0.5) * 4.0 + 0.5, 0.0, 1.0)  # patches of the second roadside
-        gain = np.float32(look.gain * (1.0 + look.gain_wobble * math.sin(0.07 * t_s)))
-        shade = (1.0 - look.shadow_strength * self._remap_wrap(look.shadow, wx, wy, 0.25)) * gain
-        fog = np.clip(geo.dist * np.float32(1.0 / look.fog_m), 0.0, 1.0) ** 1.5
-        keep = shade * (1.0 - fog)
-        a = tex * keep * (1.0 - paint)
-        b = paint * keep
-        off = np.clip(1.0 - road - curb - walk - face, 0.0, 1.0)
-        face_gain = np.float32(look.curb_face)
-        # per colour plane: (H, W) x scalar ops are far cheaper than (H, W, 1) x (3,) broadcasts
-        planes = []
-        for c in range(3):
-            ground = (
-                off * (look.offroad_rgb[c] + (look.offroad2_rgb[c] - look.offroad_rgb[c]) * mix)
-                + road * look.asphalt_rgb[c]
-                + curb * look.curb_rgb[c]
-                + face * (look.curb_rgb[c] * face_gain)
-                + walk * look.sidewalk_rgb[c]
-            )
-            planes.append(ground * a + look.paint_rgb[c] * b + look.haze_rgb[c] * fog)
-        return planes
+            curb, walk = _unit_channel(surf_t, 2), _unit_channel(surf_t, 3)
+            curb *= topf
+            walk *= topf
+            np.subtract(1.0, topf, out=topf)
+            road *= topf  # hidden behind a raised island
+            paint *= topf
+        paint -= 0.27  # re-sharpen
+        paint *= np.float32(1 / 0.45)
+        np.clip(paint, 0.0, 1.0, out=paint)
+        return {"road": road, "paint": paint, "curb": curb, "walk": walk, "face": face}
 
-    def _sky(self, planes, geo, pose):
-        """Sky gradient and a world-fixed skyline (buildings, trees) where no ground is seen;
-        returns the merged (H, W, 3) float32 image."""
+    def _colours(self, cover, mix, a, b, fog) -> np.ndarray:
+        """(rows, W, 3): the surfaces' colours weighted by `cover` (roadside: its two colours
+        by `mix`), times `a` (texture and light, without paint), plus paint times `b` and haze
+        times `fog`."""
         look = self.look
-        small = (self.w // 4, self.h // 4)
-        rx, ry, rz = (cv2.resize(r, small, interpolation=cv2.INTER_AREA) for r in geo.rays)
+        off = np.subtract(1.0, cover["road"])
+        raised = [cover[k] for k in ("curb", "walk", "face") if cover[k] is not None]
+        for m in raised:
+            off -= m
+        np.clip(off, 0.0, 1.0, out=off)
+        planes, tmp = [], np.empty_like(off)
+        for c in range(3):
+            # per colour plane: (rows, W) x scalar ops are far cheaper than x (3,) broadcasts
+            ground = np.multiply(mix, look.offroad2_rgb[c] - look.offroad_rgb[c])
+            ground += look.offroad_rgb[c]
+            ground *= off
+            layers = [(cover["road"], look.asphalt_rgb[c])]
+            if raised:  # without curbs their weights are 0: adding 0 changes nothing
+                curb_face_rgb = look.curb_rgb[c] * np.float32(look.curb_face)
+                layers += [(cover["curb"], look.curb_rgb[c]), (cover["face"], curb_face_rgb),
+                           (cover["walk"], look.sidewalk_rgb[c])]
+            for m, colour in layers:
+                ground += np.multiply(m, colour, out=tmp)
+            ground *= a
+            ground += np.multiply(b, look.paint_rgb[c], out=tmp)
+            ground += np.multiply(fog, look.haze_rgb[c], out=tmp)
+            planes.append(ground)
+        return cv2.merge(planes)
+
+    def _texture(self, dist, grain, blotch):
+        """Asphalt grain (fading out with distance) times large blotches."""
+        near = dist * np.float32(1 / 40.0)
+        np.subtract(1.0, near, out=near)
+        np.clip(near, 0.0, 1.0, out=near)
+        tex = np.subtract(grain, 1.0)
+        tex *= near
+        tex += 1.0
+        tex *= blotch
+        return tex
+
+    def _paint_left(self, wear):
+        """How much of the paint is left (in place on the `wear` texture)."""
+        wear -= self.look.wear_level
+        wear *= 4.0
+        np.clip(wear, 0.0, 1.0, out=wear)
+        wear *= np.float32(self.look.fade)
+        return wear
+
+    def _shade(self, textures, t_s):
+        """Exposure (with clouds) times the world-anchored shadows."""
+        look = self.look
+        gain = np.float32(look.gain * (1.0 + look.gain_wobble * math.sin(0.07 * t_s)))
+        shade = textures.remap(look.shadow, 0.25)
+        shade *= look.shadow_strength
+        np.subtract(1.0, shade, out=shade)
+        shade *= gain
+        return shade
+
+    def _sky(self, ground_rgb, geo, pose):
+        """Sky gradient and a world-fixed skyline (buildings, trees) where no ground is seen,
+        the ground rows' `ground_rgb` where it is; returns the (H, W, 3) float32 image. The sky
+        is drawn at a quarter of the resolution and scaled up; only the quarter rows that the
+        image rows with sky read are drawn (the rest stay 0, under the ground)."""
+        look = self.look
+        rows = self._sky_rows(geo.ground)
+        small = np.zeros((self.h // 4, self.w // 4, 3), np.float32)
+        full = slice(0, 4 * rows if rows < self.h // 4 else self.h)
+        rays = self.labeler.rays.rays(geo.R_vehicle_camera, full)
+        rx, ry, rz = (cv2.resize(r, (self.w // 4, rows), interpolation=cv2.INTER_AREA)
+                      for r in rays)
         elev = np.arctan2(rz, np.sqrt(rx * rx + ry * ry))
         az = (np.arctan2(ry, rx) + pose[2]) % (2 * np.pi)
         b = (az * (SKY_BINS / (2 * np.pi))).astype(np.int32) % SKY_BINS
-        t = np.clip(elev / 0.5, 0.0, 1.0)[..., None]
-        sky = look.haze_rgb + (look.sky_top - look.haze_rgb) * t
+        t = np.clip(elev / 0.5, 0.0, 1.0)
         building = (elev < look.skyline_elev[b]) & (elev > -0.03)
-        bcol = look.skyline_rgb[(b // 37) % len(look.skyline_rgb)]
-        windows = ((b % 7) < 3) & ((elev * 150.0) % 3.0 < 1.4) & (look.skyline_elev[b] > 0.05)
-        bcol = bcol * np.where(windows, 0.6, 1.0)[..., None] * look.gain
-        sky = np.where(building[..., None], bcol, sky).astype(np.float32)
-        sky = cv2.resize(sky, (self.w, self.h), interpolation=cv2.INTER_LINEAR)
-        no_ground = ~geo.ground
-        for c in range(3):
-            np.copyto(planes[c], sky[:, :, c], where=no_ground)
-        return cv2.merge([p.astype(np.float32, copy=False) for p in planes])
+        if self._skyline is None or self._skyline[0] != look.gain:
+            self._skyline = (look.gain, self._skyline_bins())
+        lit, lit_rgb, unlit_rgb = self._skyline[1]
+        windows = lit[b] & ((elev * 150.0) % 3.0 < 1.4)
+        for c in range(3):  # per plane: (rows, W / 4, 3) broadcasts take 5x the time
+            sky = look.haze_rgb[c] + (look.sky_top[c] - look.haze_rgb[c]) * t
+            bcol = np.where(windows, lit_rgb[c][b], unlit_rgb[c][b])
+            small[:rows, :, c] = np.where(building, bcol, sky)
+        rgb = self._upscale_sky(small, rows)
+        cv2.copyTo(ground_rgb, geo.ground_rows.view(np.uint8), rgb[geo.rows])
+        return rgb
+
+    def _upscale_sky(self, small, rows: int) -> np.ndarray:
+        """The (H, W, 3) image of the quarter-resolution sky, the image rows that read only its
+        first `rows` rows scaled up from those alone (a linear upscale by 4 from fewer rows
+        reads the same rows with the same weights; the rows below are ground)."""
+        if 4 * rows + 8 > self.h or self.h % 4 or self.w % 4:
+            return cv2.resize(small, (self.w, self.h), interpolation=cv2.INTER_LINEAR)
+        rgb = np.empty((self.h, self.w, 3), np.float32)
+        cv2.resize(small[: rows + 1], (self.w, 4 * (rows + 1)), dst=rgb[: 4 * (rows + 1)],
+                   interpolation=cv2.INTER_LINEAR)
+        return rgb
+
+    def _skyline_bins(self):
+        """Per azimuth bin of the skyline: whether its building has lit windows (the rows of
+        them are per pixel), and its colour planes with and without them (float64)."""
+        look = self.look
+        bins = np.arange(SKY_BINS)
+        lit = ((bins % 7) < 3) & (look.skyline_elev > 0.05)
+        base = look.skyline_rgb[(bins // 37) % len(look.skyline_rgb)].astype(np.float64)
+        return lit, (base * 0.6 * look.gain).T.copy(), (base * 1.0 * look.gain).T.copy()
+
+    def _sky_rows(self, ground) -> int:
+        """How many rows of the quarter-resolution sky the image rows with sky read: a linear
+        upscale by 4 reads quarter rows floor((v + 0.5) / 4 - 0.5) and the one below."""
+        sky = np.flatnonzero(~ground.all(axis=1))
+        if self.h % 4:  # the quarter image is not a 4 x 4 block average of whole rows
+            return self.h // 4
+        if sky.size == 0:
+            return 1
+        return min(self.h // 4, int(sky[-1]) // 4 + 2)
 
     def _vehicle_items(self, pose, T_vehicle_camera, vehicles):
         """(image hull int32, vehicle, corner pixels) of other vehicles, far to near; vehicles
@@ -522,13 +727,13 @@ class FrameRenderer:
 
     def _sensor(self, rgb):
         """Vignetting, optional defocus or motion blur, pixel noise, 8-bit with a tone curve."""
-        rgb = cv2.multiply(rgb, self.vignette)
+        cv2.multiply(rgb, self.vignette, dst=rgb)  # in place: rgb is this frame's own
         if self.rng.random() < self.look.blur_prob:
             if self.rng.random() < 0.5:
                 rgb = cv2.GaussianBlur(rgb, (0, 0), float(self.rng.uniform(0.6, 1.6)))
             else:
                 rgb = cv2.filter2D(rgb, -1, motion_kernel(self.rng))
-        rgb = cv2.add(rgb, self.noise[int(self.rng.integers(len(self.noise)))])
+        cv2.add(rgb, self.noise[int(self.rng.integers(len(self.noise)))], dst=rgb)
         return cv2.LUT(np.clip(rgb, 0, 255, out=rgb).astype(np.uint8), self.tone)
 
 
@@ -550,6 +755,65 @@ def _remap_surface(surface, mx, my) -> np.ndarray:
     if x0 or y0:
         mx, my = mx - np.float32(x0), my - np.float32(y0)
     return cv2.remap(masks, mx, my, cv2.INTER_LINEAR)
+
+
+def _unit_channel(image: np.ndarray, c: int) -> np.ndarray:
+    """Channel c of a uint8 image as float32 in [0, 1]."""
+    out = cv2.extractChannel(image, c).astype(np.float32)  # a strided astype: 2.5x the time
+    out *= np.float32(1 / 255)
+    return out
+
+
+def _ramp(x: np.ndarray, mid: float, gain: float) -> np.ndarray:
+    """clip((x - mid) gain + mid, 0, 1), in place (float32)."""
+    x -= mid
+    x *= gain
+    x += mid
+    return np.clip(x, 0.0, 1.0, out=x)
+
+
+def _toward(m: np.ndarray, c, k, ground: np.ndarray) -> np.ndarray:
+    """c + (m - c) k (float32) on the ground, -10 (off every window) elsewhere."""
+    out = np.subtract(m, c)
+    out *= k
+    out += c
+    np.copyto(out, np.float32(-10.0), where=~ground)
+    return out
+
+
+class _TextureMaps:
+    """World-anchored tileable textures at a frame's ground points (wx, wy). A texture of n
+    texels at res_m repeats every n res_m metres; the points are wrapped into its period
+    explicitly (keeps float32 precision far from 0). Textures of one period whose n and 1 /
+    res_m are powers of two share the wrap (scaling by a power of two is exact: the maps are
+    the same bytes as wrapping each texture's own)."""
+
+    def __init__(self, wx: np.ndarray, wy: np.ndarray):
+        self.wx, self.wy = wx, wy
+        self._wrapped = {}  # period (m) -> the points wrapped into it
+
+    def remap(self, tex: np.ndarray, res_m: float) -> np.ndarray:
+        n, scale = tex.shape[0], 1.0 / res_m
+        if _power_of_two(n) and _power_of_two(scale):
+            period = n * res_m
+            if period not in self._wrapped:
+                self._wrapped[period] = [_wrap(w, period) for w in (self.wx, self.wy)]
+            maps = [w * np.float32(scale) for w in self._wrapped[period]]
+        else:
+            maps = [_wrap(w * np.float32(scale), n) for w in (self.wx, self.wy)]
+        return cv2.remap(tex, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+
+
+def _wrap(m: np.ndarray, n: float) -> np.ndarray:
+    """m - floor(m / n) n (float32): m wrapped into [0, n)."""
+    q = m * (np.float32(1.0) / np.float32(n)) if _power_of_two(n) else m / np.float32(n)
+    np.floor(q, out=q)  # / n is exactly * (1 / n) for a power of two
+    q *= np.float32(n)
+    return np.subtract(m, q, out=q)
+
+
+def _power_of_two(x: float) -> bool:
+    return x > 0 and math.frexp(x)[0] == 0.5
 
 
 _NO_SURFACE = np.zeros((1, 1, 4), np.uint8)  # a frame that reads nothing of its window

@@ -203,3 +203,50 @@ def test_motion_blur_keeps_the_image_where_its_labels_are():
         assert blurred.sum() == pytest.approx(1.0)
         assert np.average(ys, weights=w) == pytest.approx(10.0)
         assert np.average(xs, weights=w) == pytest.approx(10.0)
+
+
+def test_a_drives_next_label_window_carries_the_surface_masks_over_with_the_same_bytes(camera):
+    """Along a drive the label window moves by whole tiles; the next window's surface masks
+    (road, paint, curb, sidewalk) are the last window's where the two overlap and are computed
+    only in the strips along its new edges: the same bytes as the whole window's masks, with
+    the widest rings (a margin narrower than theirs fails this test)."""
+    from services.sim.worlds import load_world
+
+    world = load_world("town", seed=2)
+    r = FrameRenderer(world, camera, seed=0)
+    r.look.curb, r.look.sidewalk_m, r.look.curb_w_m = True, 3.0, 0.2  # widest rings
+    route = world.routes[0]
+    step = np.linalg.norm(np.diff(route, axis=0), axis=1).mean()
+    moves, last = 0, None
+    for x, y in route[:: max(1, int(10.0 / step))]:  # every 10 m: each tile of the route
+        window, x0, y0 = r.labeler.tiles.window(x, y)
+        if window is last:
+            continue
+        masks = r._surface(window, None, None, None, None, origin_m=(x0, y0))[0]
+        if last is not None:
+            assert np.array_equal(masks, r._surface_masks(window))
+            moves += 1
+        last = window
+        if moves == 3:
+            break
+    assert moves == 3
+
+
+def test_labels_alone_are_the_rendered_frames_labels_under_a_vibrating_camera(camera):
+    """The label-only path (a drive without images) gives the labels of the RGB path; no
+    pixel off the ground (above the horizon, pitched and rolled) gets a label, and rows that
+    see no ground are sky only."""
+    from services.sim.worlds import load_world
+
+    world = load_world("town", seed=2)
+    pose = np.array([*world.routes[0][5], 0.0])
+    pose[2] = np.arctan2(*(world.routes[0][6] - world.routes[0][5])[::-1])
+    rgb_r, lab_r = FrameRenderer(world, camera, seed=4), FrameRenderer(world, camera, seed=4)
+    for d_pitch, d_roll in ((0.0, 0.0), (0.02, 0.05), (-0.03, -0.08)):
+        T = camera.perturbed(d_pitch_rad=d_pitch, d_roll_rad=d_roll).T_vehicle_camera
+        rgb, lab = rgb_r.render(pose, T, 0.0)
+        assert np.array_equal(lab_r.labels(pose, T), lab)
+        geo = rgb_r.labeler.geometry(pose, T)
+        assert (lab[~geo.ground] == 0).all() and (lab > 0).sum() > 1000
+        assert geo.ground[: geo.rows.start].sum() == 0 and geo.ground[geo.rows.stop :].sum() == 0
+        assert rgb.shape == (camera.height, camera.width, 3) and rgb[0].mean() > 0
