@@ -224,8 +224,8 @@ def read_run(cloud: Cloud, servers: int, tiles: list, queries: int, window: int)
     """Tile queries/s answered by `servers` tile servers alone, read as the localizers read:
     `window` readers, each a TileSource of its own (its own client id, as one car each, one
     query in flight), choosing a server per (client, tile). served_per_server: each server's
-    own count; cpu_s: where the time went (our processes, and the rest of the machine:
-    PostgreSQL and whatever else runs there)."""
+    own count; cpu_s: where the time went (our processes, PostgreSQL, and the rest of the
+    machine: whatever else runs there)."""
     from services.localizer.tiles import TileSource
 
     idents = [f"t{k}" for k in range(servers)]
@@ -242,7 +242,7 @@ def read_run(cloud: Cloud, servers: int, tiles: list, queries: int, window: int)
         answered_before = sum((s.answered for s in sources), Counter())
         cpu0 = _cpu(cloud, idents)
         wall = _read_all(sources, tiles, queries)
-        cpu = {k: round(v - cpu0[k], 2) for k, v in _cpu(cloud, idents).items()}
+        cpu = {k: round(v - cpu0.get(k, v), 2) for k, v in _cpu(cloud, idents).items()}
         answered = sum((s.answered for s in sources), Counter()) - answered_before
     finally:
         for source in sources:
@@ -291,9 +291,13 @@ def _read_all(sources, tiles: list, queries: int) -> float:
 
 def _cpu(cloud: Cloud, idents: list[str]) -> dict:
     """CPU seconds so far: this process (the readers and their Zenoh session), the router, each
-    tile server, and the whole machine (busy time over all cores, from /proc/stat)."""
+    tile server, the PostgreSQL server, and the whole machine (busy time over all cores, from
+    /proc/stat)."""
     out = {"bench_client": sum(os.times()[:2]), "router": _proc_cpu_s(cloud.procs["router"].pid)}
     out.update({i: _proc_cpu_s(cloud.procs[i].pid) for i in idents})
+    pg = _postgres_cpu_s(cloud.url)
+    if pg is not None:
+        out["postgres"] = pg
     fields = [int(v) for v in Path("/proc/stat").read_text().split("\n")[0].split()[1:]]
     out["machine"] = (sum(fields[:8]) - fields[3] - fields[4]) / os.sysconf("SC_CLK_TCK")
     return out
@@ -302,6 +306,27 @@ def _cpu(cloud: Cloud, idents: list[str]) -> dict:
 def _proc_cpu_s(pid: int) -> float:
     after_name = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(after_name[11]) + int(after_name[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _postgres_cpu_s(url: str) -> float | None:
+    """CPU seconds of the private server at url (services/merger/pglocal.py: ?host=<dir>): its
+    postmaster and the backends it forked; None where that cannot be read."""
+    from urllib.parse import parse_qs, urlparse
+
+    try:
+        host = parse_qs(urlparse(url).query)["host"][0]
+        master = int((Path(host) / "data" / "postmaster.pid").read_text().split()[0])
+        total = _proc_cpu_s(master)
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                after_name = stat.read_text().rsplit(")", 1)[1].split()
+                if int(after_name[1]) == master:
+                    total += _proc_cpu_s(int(stat.parent.name))
+            except (OSError, ValueError, IndexError):
+                continue  # gone meanwhile
+        return total
+    except (OSError, KeyError, ValueError, IndexError):
+        return None
 
 
 def postgres_section(url: str, *, regions: int = 16, traversals: int = 8, workers=(1, 2, 4),
