@@ -20,6 +20,16 @@ read-only tile servers (services/merger/tileserver.py) declare `roadmap/tile/*/*
 answer from the stored tiles; a get still reaches ONE queryable (the holder's exact key wins),
 never every worker, and the tiles stay readable while a region's writer is being replaced.
 
+The read path that scales: a get with the default target reaches one queryable, and Zenoh picks
+the same tile server every time, so a second server on `roadmap/tile/*/*` is only a standby.
+Each tile server therefore also declares its own `roadmap/tileserver/<id>/tile/*/*` (complete),
+and the localizer's tile client (services/localizer/tiles.py) spreads its reads itself: it
+follows the tile servers' liveliness tokens `roadmap/alive/tileserver/<id>`, sends each tile
+query to the server that rendezvous hashing over (client, tile) picks, and falls back to the
+next server, then to the plain `roadmap/tile/<tx>/<ty>`, when none is alive or the chosen one
+gives no reply. On its own key a server answers a tile it does not have (or not newer than
+`?since=`) with a delete reply, so "no such tile" and "no answer" differ.
+
 Liveliness tokens `roadmap/alive/<role>/<id>`: merger (s<k>), vehicle and localizer (their
 vehicle id) and viewer; `roadmap status` reads them all with `alive_all()` and every stats
 queryable with `stats_all()`, no shard count needed."""
@@ -57,6 +67,26 @@ def tile(tx: int, ty: int) -> str:
     return f"{PREFIX}/tile/{tx}/{ty}"
 
 
+def tileserver_tile(server: str, tx: int, ty: int) -> str:
+    """A tile on one tile server's own key: `roadmap/tileserver/<id>/tile/<tx>/<ty>`."""
+    return f"{PREFIX}/tileserver/{server}/tile/{tx}/{ty}"
+
+
+def tileserver_tile_all(server: str) -> str:
+    return f"{PREFIX}/tileserver/{server}/tile/*/*"
+
+
+def parse_tileserver_tile(key: str) -> tuple[str, tuple[int, int]]:
+    """`roadmap/tileserver/<id>/tile/<tx>/<ty>` -> (id, (tx, ty))."""
+    parts = str(key).split("/")
+    if len(parts) != 6 or parts[:2] != [PREFIX, "tileserver"] or parts[3] != "tile":
+        raise CodecError(f"expected key {PREFIX}/tileserver/<id>/tile/<tx>/<ty>, got {key!r}")
+    try:
+        return parts[2], (int(parts[4]), int(parts[5]))
+    except ValueError as exc:
+        raise CodecError(f"tile key needs integer chunks, got {key!r}") from exc
+
+
 def tile_update(tx: int, ty: int) -> str:
     return f"{PREFIX}/tile-update/{tx}/{ty}"
 
@@ -64,10 +94,18 @@ def tile_update(tx: int, ty: int) -> str:
 TILE_UPDATE_ALL = f"{PREFIX}/tile-update/*/*"
 
 
+def tile_params(since: int | None = None, codec: str | None = None) -> str:
+    """A tile query's parameters: `?since=<v>` (no sample when the tile is not newer than v)
+    and `?codec=raw` (the raw/1 copy), `;`-joined; "" for neither."""
+    params = [] if since is None else [f"since={int(since)}"]
+    if codec is not None:
+        params.append(f"codec={codec}")
+    return "?" + ";".join(params) if params else ""
+
+
 def tile_selector(tx: int, ty: int, since: int | None = None) -> str:
-    """A tile query's selector: `roadmap/tile/<tx>/<ty>`, with `?since=<v>` (no sample when
-    the tile is not newer than v)."""
-    return tile(tx, ty) + ("" if since is None else f"?since={int(since)}")
+    """A tile query's selector: `roadmap/tile/<tx>/<ty>`, with `?since=<v>`."""
+    return tile(tx, ty) + tile_params(since=since)
 
 
 def pose(vehicle: str) -> str:

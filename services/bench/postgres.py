@@ -5,9 +5,11 @@ tileserver` processes on a real router and one private PostgreSQL server on this
   ingest   acked + merged + compressed patches/s with 1, 2 and 4 workers, as ratios to 1 worker
   sqlite   the same batches through 1 SQLite shard (services/bench/merger.py) beside 1 worker
   takeover seconds from SIGKILL of one of 2 workers until the other serves all its regions
-  reads    tile queries/s answered by 1 and 2 read-only tile servers (workers stopped), and
-           how many each served: Zenoh gives a query to one complete queryable, so on one
-           router a second tile server is a standby (served_per_server shows it), not more reads
+  reads    tile queries/s answered by 1 and 2 read-only tile servers (workers stopped), read
+           as the localizers read (services/localizer/tiles.py TileSource: each reader a client
+           of its own, the server chosen per (client, tile) by rendezvous hashing, on the
+           server's own key), each server's share of the answers, and the CPU seconds of each
+           process (where the time goes on a small shared machine)
 
 Data: dense label tiles of the town world, one per region (so the regions spread over the
 workers), seen by several traversals, each traversal's votes split into patches; batches hold
@@ -22,6 +24,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 
 from common import codec, keys
@@ -218,39 +221,112 @@ def takeover_run(cloud: Cloud, timeout_s: float = 60.0) -> dict:
 
 
 def read_run(cloud: Cloud, servers: int, tiles: list, queries: int, window: int) -> dict:
-    """Tile queries/s (`window` in flight) answered by `servers` tile servers alone."""
+    """Tile queries/s answered by `servers` tile servers alone, read as the localizers read:
+    `window` readers, each a TileSource of its own (its own client id, as one car each, one
+    query in flight), choosing a server per (client, tile). served_per_server: each server's
+    own count; cpu_s: where the time went (our processes, PostgreSQL, and the rest of the
+    machine: whatever else runs there)."""
+    from services.localizer.tiles import TileSource
+
     idents = [f"t{k}" for k in range(servers)]
     for ident in idents:
         cloud.start("tileserver", ident)
-    for tile in tiles:  # warm-up, untimed: each server's connections and first reads
-        list(cloud.session.get(keys.tile(*tile), timeout=10.0))
-    before = {i: int((cloud.stats(i, "tileserver") or {}).get("served", 0)) for i in idents}
-    work = [keys.tile(*tiles[i % len(tiles)]) for i in range(queries)]
-    lock, answered = threading.Lock(), [0]
-
-    def reader() -> None:
-        while True:
-            with lock:
-                if not work:
-                    return
-                key = work.pop()
-            if any(r.ok is not None for r in cloud.session.get(key, timeout=10.0)):
-                with lock:
-                    answered[0] += 1
-
-    t0 = time.perf_counter()
-    threads = [threading.Thread(target=reader, daemon=True) for _ in range(window)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    wall = time.perf_counter() - t0
+    sources = [TileSource(cloud.session, client_id=f"reader{k}", timeout_s=10.0)
+               for k in range(window)]
+    try:
+        _wait_for_servers(sources, idents)
+        for source in sources:  # warm-up, untimed: each server's connections and first reads
+            for tile in tiles:
+                source.get(tile)
+        before = {i: int((cloud.stats(i, "tileserver") or {}).get("served", 0)) for i in idents}
+        answered_before = sum((s.answered for s in sources), Counter())
+        cpu0 = _cpu(cloud, idents)
+        wall = _read_all(sources, tiles, queries)
+        cpu = {k: round(v - cpu0.get(k, v), 2) for k, v in _cpu(cloud, idents).items()}
+        answered = sum((s.answered for s in sources), Counter()) - answered_before
+    finally:
+        for source in sources:
+            source.close()
     served = {i: int((cloud.stats(i, "tileserver") or {}).get("served", 0)) - before[i]
               for i in idents}
     for ident in idents:
         cloud.stop(ident)
+    cpu["rest_of_machine"] = round(cpu.pop("machine") - sum(cpu.values()), 2)
     return {"per_s": round(queries / wall, 1), "wall_s": round(wall, 3), "queries": queries,
-            "answered": answered[0], "served_per_server": served}
+            "answered": sum(answered.values()), "served_per_server": served,
+            "share_per_server": {i: round(n / queries, 3) for i, n in served.items()},
+            "answered_by": {i or "plain_key": n for i, n in sorted(answered.items())},
+            "no_reply": sum(s.no_reply for s in sources), "cpu_s": cpu}
+
+
+def _wait_for_servers(sources, idents: list[str], timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while any(s.live() != idents for s in sources):
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the readers do not see tile servers {idents}")
+        time.sleep(0.05)
+
+
+def _read_all(sources, tiles: list, queries: int) -> float:
+    """Seconds for `queries` tile reads shared out over the readers (one thread each)."""
+    work = [tiles[i % len(tiles)] for i in range(queries)]
+    lock = threading.Lock()
+
+    def reader(source) -> None:
+        while True:
+            with lock:
+                if not work:
+                    return
+                tile = work.pop()
+            source.get(tile)
+
+    t0 = time.perf_counter()
+    threads = [threading.Thread(target=reader, args=(s,), daemon=True) for s in sources]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return time.perf_counter() - t0
+
+
+def _cpu(cloud: Cloud, idents: list[str]) -> dict:
+    """CPU seconds so far: this process (the readers and their Zenoh session), the router, each
+    tile server, the PostgreSQL server, and the whole machine (busy time over all cores, from
+    /proc/stat)."""
+    out = {"bench_client": sum(os.times()[:2]), "router": _proc_cpu_s(cloud.procs["router"].pid)}
+    out.update({i: _proc_cpu_s(cloud.procs[i].pid) for i in idents})
+    pg = _postgres_cpu_s(cloud.url)
+    if pg is not None:
+        out["postgres"] = pg
+    fields = [int(v) for v in Path("/proc/stat").read_text().split("\n")[0].split()[1:]]
+    out["machine"] = (sum(fields[:8]) - fields[3] - fields[4]) / os.sysconf("SC_CLK_TCK")
+    return out
+
+
+def _proc_cpu_s(pid: int) -> float:
+    after_name = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(after_name[11]) + int(after_name[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _postgres_cpu_s(url: str) -> float | None:
+    """CPU seconds of the private server at url (services/merger/pglocal.py: ?host=<dir>): its
+    postmaster and the backends it forked; None where that cannot be read."""
+    from urllib.parse import parse_qs, urlparse
+
+    try:
+        host = parse_qs(urlparse(url).query)["host"][0]
+        master = int((Path(host) / "data" / "postmaster.pid").read_text().split()[0])
+        total = _proc_cpu_s(master)
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                after_name = stat.read_text().rsplit(")", 1)[1].split()
+                if int(after_name[1]) == master:
+                    total += _proc_cpu_s(int(stat.parent.name))
+            except (OSError, ValueError, IndexError):
+                continue  # gone meanwhile
+        return total
+    except (OSError, KeyError, ValueError, IndexError):
+        return None
 
 
 def postgres_section(url: str, *, regions: int = 16, traversals: int = 8, workers=(1, 2, 4),

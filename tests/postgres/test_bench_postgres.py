@@ -23,6 +23,11 @@ def test_postgres_section_small(pg_url):
         r = s["reads"][k]
         assert r["answered"] == r["queries"] == 40  # every tile read from the database
         assert sum(r["served_per_server"].values()) == 40  # warm-up reads not counted
+        assert r["answered_by"] == r["served_per_server"] and r["no_reply"] == 0
+        assert abs(sum(r["share_per_server"].values()) - 1.0) < 1e-6
+        assert set(r["cpu_s"]) - {"postgres"} == {"bench_client", "router", "rest_of_machine",
+                                                  *r["served_per_server"]}
+    assert min(s["reads"]["2_tile_servers"]["served_per_server"].values()) > 0  # both serve
     assert s["reads_ratio_2_to_1"] > 0
     assert s["sqlite_1_shard"]["per_s"] > 0 and s["postgres_1_worker_vs_sqlite_1_shard"] > 0
 
