@@ -184,6 +184,7 @@ def tls_settings(cert_dir: str | os.PathLike, role: str, *, listen: bool) -> dic
 # delivers to it. Anything not listed is denied (default_permission deny).
 _ALIVE = "roadmap/alive"
 _REGION_INGEST = keys.REGION_INGEST_ALL  # roadmap/region/*/*/ingest (grid.routing = "region")
+_SERVER_TILES = keys.tileserver_tile_all("*")  # roadmap/tileserver/*/tile/*/*: a server's own
 ROLE_RULES: dict[str, dict[str, list[tuple[list[str], list[str]]]]] = {
     "vehicle": {
         "ingress": [(["query"], ["roadmap/ingest/*", _REGION_INGEST]),
@@ -194,24 +195,27 @@ ROLE_RULES: dict[str, dict[str, list[tuple[list[str], list[str]]]]] = {
                    (["liveliness_token"], [f"{_ALIVE}/merger/*"])],
     },
     "localizer": {
-        "ingress": [(["query"], ["roadmap/tile/*/*"]),
+        "ingress": [(["query"], ["roadmap/tile/*/*", _SERVER_TILES]),
                     (["declare_subscriber"], ["roadmap/tile-update/*/*"]),
                     (["put"], ["roadmap/pose/*"]),
-                    (["liveliness_token"], [f"{_ALIVE}/localizer/*"])],
-        "egress": [(["reply"], ["roadmap/tile/*/*"]),
-                   (["put"], ["roadmap/tile-update/*/*"])],
+                    (["liveliness_token"], [f"{_ALIVE}/localizer/*"]),
+                    (["liveliness_query", "declare_liveliness_subscriber"],
+                     [f"{_ALIVE}/tileserver/*"])],  # spreads its reads over the tile servers
+        "egress": [(["reply"], ["roadmap/tile/*/*", _SERVER_TILES]),
+                   (["put"], ["roadmap/tile-update/*/*"]),
+                   (["liveliness_token"], [f"{_ALIVE}/tileserver/*"])],
     },
     # shards, PostgreSQL workers (region ingest, lease peers' liveliness) and tile servers
     "merger": {
         "ingress": [(["declare_queryable", "reply"],
-                     ["roadmap/ingest/*", _REGION_INGEST, "roadmap/tile/*/*",
+                     ["roadmap/ingest/*", _REGION_INGEST, "roadmap/tile/*/*", _SERVER_TILES,
                       "roadmap/stats/merger/*", "roadmap/stats/tileserver/*"]),
                     (["put"], ["roadmap/tile-update/*/*"]),
                     (["liveliness_token"], [f"{_ALIVE}/merger/*", f"{_ALIVE}/tileserver/*"]),
                     (["liveliness_query", "declare_liveliness_subscriber"],
                      [f"{_ALIVE}/merger/*"])],  # a worker watches its peers (rendezvous)
         "egress": [(["query"],
-                    ["roadmap/ingest/*", _REGION_INGEST, "roadmap/tile/*/*",
+                    ["roadmap/ingest/*", _REGION_INGEST, "roadmap/tile/*/*", _SERVER_TILES,
                      "roadmap/stats/merger/*", "roadmap/stats/tileserver/*"]),
                    (["liveliness_token"], [f"{_ALIVE}/merger/*"])],
     },
