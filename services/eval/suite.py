@@ -12,9 +12,11 @@ from services.sim.worlds import KARLSRUHE, shared_data_dir
 
 logger = logging.getLogger(__name__)
 
-# seeds of the suites: away from 0-36, which the demos and the localizer's settings were run on
-DEFAULT_SEEDS = range(101, 109)
-QUICK_SEEDS = range(101, 103)
+# seeds of the suites: away from 0-36 and 101-108, which the demos and the localizer's settings
+# were run on and tuned against (services/eval/replay.py); 5 seeds x (Karlsruhe, 3 Argoverse 2
+# logs, town) = 25 drives, which fit the suite's 40 minutes on 2 cores
+DEFAULT_SEEDS = range(201, 206)
+QUICK_SEEDS = range(201, 203)
 PRODUCTION_KM = 1.0  # the production drive's length where the world's route allows
 
 
