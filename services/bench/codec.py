@@ -11,11 +11,8 @@ actually compresses. Fidelity: per-class precision/recall of the decoded map aga
 uncompressed map at 0.1 m tolerance (common.evaluation, tol_cells=1). Single core, in-process."""
 
 import argparse
-import json
 import logging
-import sys
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -25,6 +22,7 @@ from common.contours import decode_tile, encode_raw, encode_tile
 from common.evaluation import per_class_precision_recall
 from common.grid import TILE_CELLS, TILE_M
 from common.messages import GridPatch
+from services.bench.runner import write_result
 from services.merger.shard import MergerShard
 
 logger = logging.getLogger("bench.codec")
@@ -164,10 +162,7 @@ def main() -> None:
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO)
     result = run(args.quick, args.world)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "codec.json").write_text(json.dumps(result, indent=1))
-    sys.stdout.write(json.dumps(result["codec"], indent=1) + "\n")
+    write_result(args.out, "codec.json", result, result["codec"])
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ import numpy as np
 
 from common.config import LocalizerConfig
 from common.contours import decode_tile, encode_tile
+from services.bench.runner import write_result
 from services.eval.localization import evaluate_localizer, localization_metrics, summary_line
 from services.localizer.localizer import get_localizer, replay
 from services.localizer.map_cache import TileCache
@@ -373,10 +374,7 @@ def main() -> int:
         sys.stdout.write(f"{summary_line(acc)}, GNSS {off} m off at start\n")
         return 0
     result = {"cores_used": 1, "cpu_count": os.cpu_count(), **run(args.quick)}
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "localizer.json").write_text(json.dumps(result, indent=1))
-    sys.stdout.write(json.dumps(result["stages"], indent=1) + "\n")
+    write_result(args.out, "localizer.json", result, result["stages"])
     return 0
 
 

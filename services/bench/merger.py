@@ -17,7 +17,6 @@ numpy. Data: every tile of a world (town) observed by several traversals, each t
 for a tile split into spatially contiguous patches as a vehicle sends them."""
 
 import argparse
-import json
 import logging
 import os
 import subprocess
@@ -34,6 +33,7 @@ from common.classes import NUM_CLASSES
 from common.config import RoadmapConfig
 from common.grid import CELLS_PER_TILE, owner_of_tile
 from common.messages import GridPatch, IngestAck, IngestBatch
+from services.bench.runner import write_result
 from services.merger.shard import MergerShard
 
 logger = logging.getLogger("bench.merger")
@@ -412,10 +412,7 @@ def main() -> None:
     result = run(args.quick, args.window)
     if pinning:
         result["scaling"]["pinning"] = pinning
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "merger.json").write_text(json.dumps(result, indent=1))
-    sys.stdout.write(json.dumps(result, indent=1) + "\n")
+    write_result(args.out, "merger.json", result)
 
 
 if __name__ == "__main__":

@@ -32,6 +32,7 @@ from common.config import RoadmapConfig
 from common.grid import REGION_TILES, region_of_tile
 from common.messages import IngestAck, IngestBatch, Stats
 from services.bench import merger as bench_merger
+from services.bench.runner import write_result
 
 logger = logging.getLogger("bench.postgres")
 
@@ -415,10 +416,7 @@ def main() -> None:
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO)
     result = run(args.quick)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "postgres.json").write_text(json.dumps(result, indent=1))
-    sys.stdout.write(json.dumps(result, indent=1) + "\n")
+    write_result(args.out, "postgres.json", result)
 
 
 if __name__ == "__main__":

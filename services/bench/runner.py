@@ -27,6 +27,16 @@ BENCHMARKS = ("render", "segmentation", "vehicle", "merger", "codec", "localizer
 SECTIONS = ("stages", "merge", "scaling", "mapper", "upload", "postgres")
 
 
+def write_result(out_dir, name: str, result: dict, shown=None) -> Path:
+    """A benchmark's own command line: `result` to OUT_DIR/NAME (JSON) and `shown` (default:
+    all of it) to stdout."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / name).write_text(json.dumps(result, indent=1))
+    sys.stdout.write(json.dumps(result if shown is None else shown, indent=1) + "\n")
+    return out / name
+
+
 def load_bench(name: str, bench_dir: Path | None = None):
     """The benchmark module services.bench.<name>; with `bench_dir`, a folder's
     bench_<name>.py imported by its path instead (a user's own benchmarks, and the tests')."""

@@ -40,6 +40,7 @@ from common.drivelog import DriveLog
 from common.evaluation import per_class_precision_recall
 from common.grid import owner_of_tile
 from common.messages import batch_of
+from services.bench.runner import write_result
 from services.merger.durable import DurableShard
 from services.merger.shard import MergerShard
 from services.merger.store import ShardStore
@@ -284,8 +285,7 @@ def main() -> None:
         name = "pair.json"
     else:
         result, name = run(args.quick), "upload.json"
-    (out / name).write_text(json.dumps(result, indent=1))
-    sys.stdout.write(json.dumps(result.get("summary", result), indent=1) + "\n")
+    write_result(out, name, result, result.get("summary", result))
 
 
 if __name__ == "__main__":

@@ -11,7 +11,6 @@ run and, when ../shared/data exists, the pose graph on the real comma2k19 drive.
 
 import argparse
 import dataclasses
-import json
 import logging
 import os
 import sys
@@ -24,6 +23,7 @@ import numpy as np
 from common.classes import colorize
 from common.config import SegmentationConfig
 from common.segmentation import DEFAULT_MODEL, configured_onnx, get_segmenter
+from services.bench.runner import write_result
 from services.eval.mapping import local_map_quality, pose_errors
 from services.sim.truth_segmenter import GroundTruthSegmenter
 from services.sim.worlds import shared_data_dir
@@ -215,10 +215,7 @@ def main() -> int:
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO)
     result = run(args.quick)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "vehicle.json").write_text(json.dumps(result, indent=1))
-    sys.stdout.write(json.dumps(result["mapper"], indent=1)[:3000] + "\n")
+    write_result(args.out, "vehicle.json", result, result["mapper"])
     return 0
 
 

@@ -1,6 +1,7 @@
 """The demo's tools without the fleet: process supervisor (kill, restart, clean stop), the bench
 runner's tolerance of a missing or failing benchmark, and the map digest."""
 
+import json
 import os
 import time
 
@@ -54,6 +55,13 @@ def test_bench_records_missing_and_failing_benchmarks(tmp_path):
     assert "boom" in out["benchmarks"]["bad"]["error"]
     assert "does not exist" in out["benchmarks"]["absent"]["error"]
     assert out["cores"] == os.cpu_count()
+
+
+def test_a_benchmark_command_writes_its_json_and_shows_a_part(tmp_path, capsys):
+    result = {"stages": {"a": 1.5}, "cpu_count": 2}
+    path = bench.write_result(tmp_path / "new", "x.json", result, result["stages"])
+    assert json.loads(path.read_text()) == result
+    assert json.loads(capsys.readouterr().out) == {"a": 1.5}
 
 
 def test_the_environment_names_the_cpu_and_the_vector_units_the_timings_depend_on():
