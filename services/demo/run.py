@@ -269,9 +269,9 @@ class DemoRun:
             time.sleep(0.2)
 
     def _frames_done(self, vehicle: str) -> str:
-        """'frame i of N' from the vehicle's STATE/progress.json (services/vehicle/node.py)."""
+        """'frame i of N' from the vehicle's STATE/frames.json (services/vehicle/node.py)."""
         try:
-            p = json.loads((self._state(vehicle) / "progress.json").read_text())
+            p = json.loads((self._state(vehicle) / "frames.json").read_text())
             return f"frame {p['frames_done']} of {p['frames']}"
         except (OSError, ValueError, KeyError):
             return "starting"

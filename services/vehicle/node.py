@@ -28,14 +28,16 @@ from common.messages import THROTTLED, GridPatch, IngestAck, batch_of
 from common.segmentation import segmenter_for
 from services.vehicle.estimator import PoseEstimator
 from services.vehicle.mapper import VehicleMapper
-from services.vehicle.outbox import Outbox
+from services.vehicle.outbox import Outbox, write_atomic
 from services.vehicle.outputs import write_local_map, write_poses, write_summary
 from services.vehicle.patchform import get_patch_form
 
 logger = logging.getLogger(__name__)
 
 STAGES = ("segmentation", "ipm", "pose_graph", "voting", "outbox")
-PROGRESS_S = 5.0  # how often a mapping run writes STATE/progress.json
+PROGRESS_S = 5.0  # how often a mapping run writes STATE/frames.json
+# (not progress.json: that is the outbox's sealed count, which a restart resumes from)
+FRAMES_FILE = "frames.json"
 
 
 def build_mapper(log: DriveLog, vehicle: str, cfg: RoadmapConfig):
@@ -293,15 +295,14 @@ class VehicleRun:
         self.uploader.wake.set()
 
     def progress(self, done: int, total: int) -> None:
-        """STATE/progress.json every PROGRESS_S seconds while mapping (roadmap demo shows it)."""
+        """STATE/frames.json every PROGRESS_S seconds while mapping (roadmap demo shows it)."""
         now = time.perf_counter()
         if now < self._next_progress and done:
             return
         self._next_progress = now + PROGRESS_S
         logger.info("mapping frame %d of %d", done, total)
-        path = self.state / "progress.json"
-        path.with_suffix(".tmp").write_text(json.dumps({"frames_done": done, "frames": total}))
-        path.with_suffix(".tmp").replace(path)
+        write_atomic(self.state / FRAMES_FILE,
+                     json.dumps({"frames_done": done, "frames": total}).encode())
 
     def map_and_upload(self, session) -> None:
         """Map the whole log, then wait until every patch is acked (or the run is stopped)."""

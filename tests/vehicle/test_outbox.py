@@ -1,5 +1,7 @@
 """Outbox: durable patches until acked, progress for restarts, counters from the ack log."""
 
+import json
+
 import numpy as np
 
 from common.messages import GridPatch
@@ -59,3 +61,17 @@ def test_progress_is_per_traversal(tmp_path):
     box.set_sealed("d0", 4)
     assert Outbox(tmp_path).sealed("d0") == 4
     assert Outbox(tmp_path).sealed("d1") == 0
+
+
+def test_the_mapping_progress_file_leaves_the_sealed_count_a_restart_resumes_from(tmp_path):
+    """The vehicle's frames-done file (roadmap demo's progress line) is not the outbox's
+    progress.json: writing it once clobbered the sealed count, so a restarted vehicle re-sealed
+    its drive from the start."""
+    from types import SimpleNamespace
+
+    from services.vehicle.node import FRAMES_FILE, VehicleRun
+
+    Outbox(tmp_path).set_sealed("d0", 7)
+    VehicleRun.progress(SimpleNamespace(state=tmp_path, _next_progress=0.0), 120, 900)
+    assert Outbox(tmp_path).sealed("d0") == 7
+    assert json.loads((tmp_path / FRAMES_FILE).read_text()) == {"frames_done": 120, "frames": 900}
