@@ -11,6 +11,8 @@ Times start at 1.6e9 s + seed * 1e6 s + slot * 3600 s, so a later seed is a late
 
 import logging
 import math
+import signal
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -104,10 +106,22 @@ def run_drives(jobs: list[dict], workers: int = 1) -> list[Path]:
     global _JOBS
     _JOBS = jobs
     try:
-        with multiprocessing.get_context("fork").Pool(min(workers, len(jobs))) as pool:
+        with multiprocessing.get_context("fork").Pool(min(workers, len(jobs)),
+                                                      initializer=die_with_parent) as pool:
             return pool.map(_job, range(len(jobs)), chunksize=1)
     finally:
         _JOBS = []
+
+
+def die_with_parent() -> None:
+    """Linux: SIGKILL this process when its parent dies, so that a demo killed mid-render (even
+    by SIGKILL, which runs no cleanup) leaves no render worker behind. Elsewhere: nothing."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
 def _job(i: int) -> Path:
