@@ -424,6 +424,14 @@ def load_config(
     return cfg
 
 
+def with_sections(cfg: RoadmapConfig, sections: Mapping) -> RoadmapConfig:
+    """cfg with the values of a parsed TOML table ({section: {key: value}}) over it, coerced and
+    validated as a config file's are (a stored run's config.toml writes None as "")."""
+    cfg = _merge(cfg, sections, "")
+    _validate(cfg)
+    return cfg
+
+
 def _validate(cfg: RoadmapConfig) -> None:
     if cfg.grid.shards < 1:
         raise ConfigError("grid.shards must be >= 1")

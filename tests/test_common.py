@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from common import codec, grid, keys
-from common.config import RoadmapConfig, load_config
+from common.config import RoadmapConfig, load_config, to_toml, with_sections
 from common.errors import CodecError, ConfigError
 from common.geometry import (
     ecef_to_geodetic,
@@ -181,6 +181,20 @@ def test_config_rejects_unknown_keys_and_bad_types():
         load_config(env={"ROADMAP_GRID__SHARDS": "many"})
     with pytest.raises(ConfigError, match="shards"):
         load_config(env={"ROADMAP_GRID__SHARDS": "0"})
+
+
+def test_a_stored_runs_config_reads_back_as_it_ran():
+    """A run's config.toml (to_toml: None as "") over today's defaults, as services.eval.replay
+    reads a stored drive's: same config, its None values None again, bad values refused."""
+    import tomllib
+
+    ran = load_config(sets=["segmentation.sky_margin_deg=4.5", "roi.x_min_m=3.5"])
+    stored = tomllib.loads(to_toml(ran))
+    assert with_sections(RoadmapConfig(), stored) == ran
+    assert with_sections(ran, {"segmentation": {"sky_margin_deg": ""}}).segmentation \
+        .sky_margin_deg is None
+    with pytest.raises(ConfigError):
+        with_sections(ran, {"grid": {"shards": 0}})
 
 
 def test_se2_helpers_are_consistent(rng):

@@ -16,12 +16,11 @@ import logging
 import sys
 import time
 import tomllib
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from common.config import RoiConfig, SegmentationConfig, load_config
+from common.config import RoiConfig, SegmentationConfig, load_config, with_sections
 from common.drivelog import DriveLog
 from services.eval.score import markings_in_view, score_frames
 from services.localizer.localizer import get_localizer, replay
@@ -35,14 +34,15 @@ CACHE = Path("/tmp/roadmap-replay")
 
 
 def stored_config(drive_dir: Path, sets: list[str]):
-    """Today's defaults with the run's segmentation and ROI (what made its frames), then sets."""
+    """Today's defaults with the run's segmentation and ROI (what made its frames), then sets.
+    Keys that no longer exist are left out."""
     with open(drive_dir / "localizer" / "config.toml", "rb") as f:
         old = tomllib.load(f)
-    cfg = load_config(sets=sets)
-    seg = {k: v for k, v in old.get("segmentation", {}).items()
-           if k in SegmentationConfig.__dataclass_fields__}
-    return replace(cfg, segmentation=replace(cfg.segmentation, **seg),
-                   roi=RoiConfig(**old.get("roi", {})))
+    fields = {"segmentation": SegmentationConfig.__dataclass_fields__,
+              "roi": RoiConfig.__dataclass_fields__}
+    kept = {name: {k: v for k, v in old.get(name, {}).items() if k in known}
+            for name, known in fields.items()}
+    return load_config(sets=sets, base=with_sections(load_config(), kept))
 
 
 def frame_points(log: DriveLog, cfg, cache_file: Path):
