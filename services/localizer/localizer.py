@@ -79,21 +79,18 @@ class Localizer:
         self.init_travel_m, self.init_frames = init_travel_m, init_frames
         self.init_min_overlap, self.init_sigma_m = init_min_overlap, init_sigma_m
         self.init_min_frames, self.init_every = init_min_frames, init_every
-        self.init_margin = init_margin
-        self.reinit_bad_frames = reinit_bad_frames
+        self.init_margin, self.reinit_bad_frames = init_margin, reinit_bad_frames
         self.recent_frames, self.recent_points = recent_frames, recent_points
-        self.track_gate_m = track_gate_m
-        # camera attitude offset (pitch, roll) learnt from the per-frame ICP attitude: the
-        # calibration error is constant, the vibration averages out
+        self.track_gate_m, self.init_min_marking_points = track_gate_m, init_min_marking_points
+        # camera attitude (pitch, roll) offset from the ICP attitude: constant, vibration averages
         self.calibration = np.zeros(2)
-        self.calibration_rate = calibration_rate
-        self.reinit_gnss_rejections = reinit_gnss_rejections
+        self.calibration_rate, self.reinit_gnss_rejections = (calibration_rate,
+                                                              reinit_gnss_rejections)
         self.hold_m, self.hold_below_m = hold_m, hold_below_m
         self.rival_travel_m, self.rival_points = rival_travel_m, rival_points
         self.alert_limit_m, self.integrity_k = alert_limit_m, integrity_k
         self.settle_frames, self.reacquire_settle_frames = settle_frames, reacquire_settle_frames
         self.min_marking_points, self.lost_after_frames = min_marking_points, lost_after_frames
-        self.init_min_marking_points = init_min_marking_points
         self.hold_drift_per_m, self.dead_reckoning_drift_per_m = (hold_drift_per_m,
                                                                   dead_reckoning_drift_per_m)
         self._start(seed)
