@@ -1,6 +1,7 @@
 """Shared fixtures: seeded rng, the shared data folder, a real local Zenoh router process; and
 how tests start our own processes (`roadmap ARGS` is `python -m services.cli ARGS`)."""
 
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -24,6 +25,16 @@ def spawn(*args, env=None, module: str = "services.cli", stdout=subprocess.DEVNU
     stderr kept (for the failure message), unless given files for them."""
     return subprocess.Popen(_argv(module, args), cwd=REPO, env=env, stdout=stdout,
                             stderr=stderr)
+
+
+def kill_all(procs) -> None:
+    """SIGKILL every process of `procs` still running (woken first, in case a test SIGSTOPped
+    it) and reap them all."""
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGCONT)
+            p.kill()
+        p.wait(10)
 
 
 def roadmap(*args, env=None, timeout: float = 60) -> subprocess.CompletedProcess:

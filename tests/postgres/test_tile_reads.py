@@ -18,7 +18,7 @@ from common.grid import region_of_tile
 from common.messages import Stats, Tile
 from services.localizer.map_cache import TileCache
 from services.localizer.tiles import TileClient, TileSource, server_order
-from tests.conftest import spawn
+from tests.conftest import kill_all, spawn
 
 pytestmark = [pytest.mark.integration, pytest.mark.postgres, pytest.mark.timeout(180)]
 
@@ -57,11 +57,7 @@ class Servers:
         return (self.tmp / f"{ident}.log").read_text()[-3000:]
 
     def close(self):
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGCONT)
-                p.kill()
-            p.wait(10)
+        kill_all(self.procs.values())
 
 
 @pytest.fixture

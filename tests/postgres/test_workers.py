@@ -20,7 +20,7 @@ from common.grid import region_of_tile
 from common.messages import IngestAck, IngestBatch, Stats, Tile
 from services.merger.pgstore import PgDatabase, read_tile
 from services.merger.shard import MergerShard
-from tests.conftest import spawn
+from tests.conftest import kill_all, spawn
 from tests.merger.helpers import lane_tile, patches_from_labels
 
 pytestmark = [pytest.mark.integration, pytest.mark.postgres, pytest.mark.timeout(150)]
@@ -129,11 +129,7 @@ class Fleet:
                    for n, p in self.procs.items() if p.poll() is None)
 
     def close(self):
-        for p in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGCONT)
-                p.kill()
-            p.wait(10)
+        kill_all(self.procs.values())
 
 
 @pytest.fixture
