@@ -24,6 +24,11 @@ CHI2_99 = {2: 9.21, 3: 11.34}
 SCALE_LIMIT = 0.05  # wheel odometry scale error beyond +-5 % is a filter fault, not a car
 
 
+def _clamp_scale(scale: float) -> float:
+    """The odometry scale within +-SCALE_LIMIT of 1: every update that moves it clamps it."""
+    return min(max(float(scale), 1.0 - SCALE_LIMIT), 1.0 + SCALE_LIMIT)
+
+
 def _pose_residual(a, b):
     r = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
     if r.shape[0] == 3:
@@ -221,7 +226,7 @@ class PoseFilter:
         x[3:] = x[3:] + K @ shift
         x[:3] = np.asarray(pose, float)
         x[2] = float(wrap_angle(x[2]))
-        x[3] = min(max(x[3], 1.0 - SCALE_LIMIT), 1.0 + SCALE_LIMIT)  # as _update clamps it
+        x[3] = _clamp_scale(x[3])
         P_new = np.empty_like(P)
         P_new[:3, :3] = Ppp_post
         P_new[3:, :3] = K @ Ppp_post
@@ -290,5 +295,5 @@ class PoseFilter:
             residual=lambda a, b: _pose_residual(a.reshape(-1), b.reshape(-1)).reshape(-1, 1),
         )
         self.ekf.x[2, 0] = float(wrap_angle(self.ekf.x[2, 0]))
-        self.ekf.x[3, 0] = min(max(self.ekf.x[3, 0], 1.0 - SCALE_LIMIT), 1.0 + SCALE_LIMIT)
+        self.ekf.x[3, 0] = _clamp_scale(self.ekf.x[3, 0])
         return True

@@ -198,9 +198,10 @@ class Localizer:
             diag["rivals"] = self._weigh_rivals()
         # an unresolved ambiguity is not a trusted pose, nor one whose protection level
         # exceeds the alert limit
+        integrity_sigma_m = self.integrity_sigma_m
         ok = (self.ekf.ok and not self.rivals
-              and self.integrity_k * self.integrity_sigma_m <= self.alert_limit_m)
-        diag["integrity_sigma_m"] = round(self.integrity_sigma_m, 4)
+              and self.integrity_k * integrity_sigma_m <= self.alert_limit_m)
+        diag["integrity_sigma_m"] = round(integrity_sigma_m, 4)
         return Estimate(t_ns, self.ekf.vehicle_pose, self.ekf.cov, ok, diag)
 
     def _fuse(self, result: IcpResult | None) -> bool:
@@ -213,9 +214,10 @@ class Localizer:
         if (accepted and self.unmatched_frames >= self.settle_frames  # markings are back
                 and self.settled_matches >= self.reacquire_settle_frames):  # (else settling)
             self.settled_matches, self.pull_since_gap = 0, np.zeros(2)
+        correction = self.ekf.pose[:2] - predicted
         self.settled_matches += int(accepted)
-        self.pull_since_gap = self.pull_since_gap + (self.ekf.pose[:2] - predicted)
-        self.corrections.append(self.ekf.pose[:2] - predicted)
+        self.pull_since_gap = self.pull_since_gap + correction
+        self.corrections.append(correction)
         self.unmatched_frames = 0 if accepted else self.unmatched_frames + 1
         if accepted:
             self.match_travel_m = self.travel_m
