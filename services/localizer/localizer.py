@@ -323,12 +323,9 @@ class Localizer:
         final = n >= self.submap.maxlen or self.travel_m >= self.init_travel_m
         if runner is not None and runner[0] > best[0] - self.init_margin and not final:
             return {"state": "init_ambiguous", "overlap": best[0], "runner_up": runner[0]}
-        self._start_filter(best[1])
-        self.rivals = [
-            (res.pose, self.odom.copy())
-            for overlap, res in distinct[1:]
-            if overlap > best[0] - self.init_margin
-        ]
+        rivals = [res for overlap, res in distinct[1:] if overlap > best[0] - self.init_margin]
+        self._start_filter(best[1], rivals=rivals)
+        self.rivals = [(res.pose, self.odom.copy()) for res in rivals]
         self.rivals_since_m = self.travel_m
         return {
             "state": "initialized",
@@ -402,9 +399,15 @@ class Localizer:
         return {"n": len(self.rivals), "switched": switch,
                 "overlaps": [round(o, 3) for o, _ in scored]}
 
-    def _start_filter(self, res: IcpResult, scale: float | None = None) -> None:
+    def _start_filter(self, res: IcpResult, scale: float | None = None, rivals=()) -> None:
+        """Start the filter at a match. Equally good rival matches (a line's start seen 5 m
+        off, dashes a period apart) widen its position covariance by their spread: else the
+        first along-road fixes, pulling metres, are read as an odometry scale error."""
         cov = res.cov.copy()
         cov[:2, :2] += np.eye(2) * self.init_sigma_m**2
+        for rival in rivals:
+            d = rival.pose[:2] - res.pose[:2]
+            cov[:2, :2] += np.outer(d, d)
         cov[2, 2] += math.radians(1.0) ** 2
         self.ekf.reset(res.pose, cov, scale)
         self.bad_frames = self.waiting_frames = self.unmatched_frames = 0
