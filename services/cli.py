@@ -168,6 +168,9 @@ def _eval(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=2, help="drives at once (default 2)")
     p.add_argument("--vehicles", type=int, default=3, help="mapping vehicles per drive")
     p.add_argument("--out", default="out/eval")
+    p.add_argument("--relocalize", metavar="RUN", default=None, help="re-localize the drives "
+                   "of an earlier run (its --out) offline with today's localizer and --set, "
+                   "and write the suite's eval.json for them to --out")
     _common(p)
 
 

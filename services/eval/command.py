@@ -1,14 +1,22 @@
 """`roadmap eval [--suite default|quick] [--world W ...] [--seeds A-B] [--workers N] [--out DIR]`:
 run the suite's drives (or the given worlds over the given seeds), score each against the truth,
-and write DIR/eval.json (drives and summary) and DIR/eval.png."""
+and write DIR/eval.json (drives and summary) and DIR/eval.png.
+
+`roadmap eval --relocalize RUN --out DIR [--set localizer.KEY=VALUE ...]`: the drives of an
+earlier run (RUN/drives/*) re-localized offline with today's localizer (services/eval/replay.py:
+the same frames, the tiles the car received, the car's own noise), each scored and summarized as
+above: minutes instead of the suite's forty, to judge a localizer change paired by drive. The
+fleet, the map and the frames stay those of RUN (its map figures are RUN's)."""
 
 import json
 import logging
 import sys
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from common.errors import ConfigError
 from services.eval.figure import eval_figure
+from services.eval.replay import replay_drive
 from services.eval.run import run_suite, suite_settings
 from services.eval.suite import DEFAULT_SEEDS, Drive, parse_seeds, suite_drives
 from services.eval.summary import summarize
@@ -55,12 +63,36 @@ def format_summary(s: dict) -> str:
 def _f(v, scale=1.0) -> str:
     return "-" if v is None else f"{v * scale:.3f}"
 
+def relocalized(run: Path, sets: list[str], workers: int) -> list[dict]:
+    """The entries of RUN's drives, each finished one's score replaced by its re-localization's
+    (the report, map figures included, stays RUN's)."""
+    done = sorted(run.glob("drives/*/drive.json"))
+    if not done:
+        raise ConfigError(f"{run}: no finished drives (drives/*/drive.json) to re-localize")
+    entries = [json.loads(f.read_text()) for f in done]
+    redo = [(f.parent, e) for f, e in zip(done, entries, strict=True) if e.get("ok")]
+    with ProcessPoolExecutor(max_workers=max(workers, 1)) as pool:
+        scores = pool.map(replay_drive, [d for d, _ in redo], [sets] * len(redo),
+                          [True] * len(redo))
+        for (drive_dir, entry), r in zip(redo, scores, strict=True):
+            entry["score"] = {k: v for k, v in r.items()
+                              if k not in ("drive", "inits", "cpu_s", "ok_frames")}
+            logger.info("%s re-localized: %d ok frames, %d inits, %.0f s CPU", drive_dir.name,
+                        r["ok_frames"], r["inits"], r["cpu_s"])
+    return entries
+
 def eval_command(args, cfg) -> int:
     out = Path(args.out)
-    drives = chosen_drives(args)
-    settings = suite_settings(list(args.set or []), args.vehicles)
-    logger.info("eval: %d drives, %d at a time, in %s", len(drives), args.workers, out)
-    entries = run_suite(drives, out, settings, args.workers)
+    if args.relocalize:
+        if Path(args.relocalize).resolve() == out.resolve():
+            raise ConfigError("--relocalize: give another --out (RUN keeps its own eval.json)")
+        entries = relocalized(Path(args.relocalize), list(args.set or []), args.workers)
+        out.mkdir(parents=True, exist_ok=True)
+    else:
+        drives = chosen_drives(args)
+        settings = suite_settings(list(args.set or []), args.vehicles)
+        logger.info("eval: %d drives, %d at a time, in %s", len(drives), args.workers, out)
+        entries = run_suite(drives, out, settings, args.workers)
     result = write_eval(out, entries)
     sys.stdout.write(format_summary(result["summary"]))
     sys.stdout.write(f"wrote {out / 'eval.json'} and {out / 'eval.png'}\n")

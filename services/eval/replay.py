@@ -1,7 +1,7 @@
 """Replay a stored drive's car through the localizer core, offline: no router, no fleet, no
 rendering. The map is every tile the car received in that run (its localizer/tiles.npz, latest
 versions), the frames are the production log's labels segmented and lifted as the node does
-(cached once per drive in CACHE/<drive>.npz), and the result is scored as the suite scores a
+(cached once per drive in CACHE, replay.cache_file), and the result is scored as the suite scores a
 drive (services/eval/score.py). Minutes per 1 km drive instead of the demo's ten or more: the
 loop to iterate the localizer on, paired by drive.
 
@@ -11,6 +11,7 @@ DIR: a suite drive folder (DIR/drives/production/<log>, DIR/localizer/tiles.npz)
 figures go to stdout (one line) and, with --out, to FILE as JSON."""
 
 import argparse
+import hashlib
 import json
 import logging
 import sys
@@ -45,10 +46,10 @@ def stored_config(drive_dir: Path, sets: list[str]):
     return load_config(sets=sets, base=with_sections(load_config(), kept))
 
 
-def frame_points(log: DriveLog, cfg, cache_file: Path):
+def frame_points(log: DriveLog, cfg, cache_path: Path):
     """Per frame (points_v, classes, jacobians) as the node makes them; cached."""
-    if cache_file.exists():
-        with np.load(cache_file) as z:  # each z[key] reads the whole array: once each
+    if cache_path.exists():
+        with np.load(cache_path) as z:  # each z[key] reads the whole array: once each
             pts, cls, jac, off, in_view = (z[k] for k in ("pts", "cls", "jac", "offsets",
                                                          "in_view"))
         return [(pts[a:b], cls[a:b], jac[a:b])
@@ -58,12 +59,20 @@ def frame_points(log: DriveLog, cfg, cache_file: Path):
     src = _FrameSource(log, cfg)
     frames = [src.points(i) for i in range(len(log))]
     in_view = markings_in_view(log, cfg.roi)
-    cache_file.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(cache_file, pts=np.concatenate([f[0] for f in frames]),
+    cache_path.parent.mkdir(parents=True, exist_ok=True)
+    part = cache_path.with_name(cache_path.stem + ".part.npz")  # whole or absent
+    np.savez(part, pts=np.concatenate([f[0] for f in frames]),
              cls=np.concatenate([f[1] for f in frames]),
              jac=np.concatenate([f[2] for f in frames]),
              offsets=np.cumsum([0] + [len(f[0]) for f in frames]), in_view=in_view)
+    part.replace(cache_path)
     return frames, in_view
+
+
+def cache_file(drive_dir: Path) -> Path:
+    """CACHE/<drive>-<hash of its path>.npz: two runs' drives of one name never share frames."""
+    key = hashlib.blake2b(str(Path(drive_dir).resolve()).encode(), digest_size=6).hexdigest()
+    return CACHE / f"{Path(drive_dir).name}-{key}.npz"
 
 
 def received_map(drive_dir: Path, lc):
@@ -76,13 +85,14 @@ def received_map(drive_dir: Path, lc):
     return cache
 
 
-def replay_drive(drive_dir: Path, sets: list[str]) -> dict:
-    """The suite's score of the stored drive re-localized with today's localizer (+ sets)."""
+def replay_drive(drive_dir: Path, sets: list[str], keep_errors: bool = False) -> dict:
+    """The suite's score of the stored drive re-localized with today's localizer (+ sets);
+    keep_errors: with the per-frame errors (`errors_m`, for the suite's figure)."""
     drive_dir = Path(drive_dir)
     cfg = stored_config(drive_dir, sets)
     (prod,) = sorted((drive_dir / "drives" / "production").iterdir())
     log = DriveLog(prod)
-    frames, in_view = frame_points(log, cfg, CACHE / f"{drive_dir.name}.npz")
+    frames, in_view = frame_points(log, cfg, cache_file(drive_dir))
     loc = get_localizer(cfg.localizer, received_map(drive_dir, cfg.localizer),
                         camera=log.meta.camera)
     t0 = time.process_time()
@@ -92,7 +102,8 @@ def replay_drive(drive_dir: Path, sets: list[str]) -> dict:
     ok = np.array([bool(e.ok) for e in est])
     score = score_frames(log.streams["frame_t_ns"], poses, ok,
                          log.streams["frame_pose_true"], in_view)
-    score.pop("errors_m")
+    if not keep_errors:
+        score.pop("errors_m")
     return {"drive": drive_dir.name, "inits": loc.inits, "cpu_s": round(cpu_s, 1),
             "ok_frames": int(ok.sum()), **score}
 
