@@ -416,3 +416,27 @@ def test_a_class_margin_leaves_only_that_classes_unsure_pixels_unknown(rng):
     assert not (strict == 5).any()
     others = (plain != 5) & (strict != 0)
     assert np.array_equal(strict[others], plain[others])
+
+
+@needs_model
+def test_border_net_below_the_sky_gives_the_whole_frames_labels():
+    """With sky rows, the border classifier runs on the rows just above them and below only:
+    on rendered town frames, bit for bit the labels it gives run on the whole frame, with and
+    without the mirror image. (The sky cut here, 208 rows, lies in the road's paint, so that
+    borders meet the first row segmented; the product's, 80 rows above the ROI, sees no
+    paint there.)"""
+    from services.bench.heldout import render_heldout
+
+    seg = OnnxSegmenter(sky_fraction=0.6, flip="alternate")
+    assert seg.border_net is not None and seg.sky_rows == 208
+    pairs, _ = render_heldout("town:0.6", frames=4, seed=5)
+    changed = top = 0
+    for image, _ in pairs:
+        for _ in range(2):  # the image, then its mirror
+            small, labels, score_at = seg.network_labels(image)
+            whole = seg.border_net(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), labels, score_at)
+            np.testing.assert_array_equal(seg.refined_borders(small, small, labels, score_at),
+                                          whole)
+            changed += int((whole != labels).sum())
+            top += int((labels[seg.sky_rows] >= Cls.LANE_LINE).sum())
+    assert changed > 100 and top > 0  # borders re-decided, paint in the first row segmented
