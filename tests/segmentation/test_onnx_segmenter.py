@@ -440,3 +440,62 @@ def test_border_net_below_the_sky_gives_the_whole_frames_labels():
             changed += int((whole != labels).sum())
             top += int((labels[seg.sky_rows] >= Cls.LANE_LINE).sum())
     assert changed > 100 and top > 0  # borders re-decided, paint in the first row segmented
+
+
+def _resize_graph(channels: int):
+    """x (1, C, h, w) resized to skip's (H, W) as the exported decoder does (sizes from the
+    shapes, linear, half-pixel)."""
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper, numpy_helper
+
+    i64 = lambda name, v: numpy_helper.from_array(np.array(v, np.int64), name)  # noqa: E731
+    nodes = [helper.make_node("Shape", ["x"], ["sx"]), helper.make_node("Shape", ["skip"], ["ss"]),
+             helper.make_node("Slice", ["sx", "z", "two"], ["nc"]),
+             helper.make_node("Slice", ["ss", "two", "four"], ["hw"]),
+             helper.make_node("Concat", ["nc", "hw"], ["sizes"], axis=0),
+             helper.make_node("Resize", ["x", "", "", "sizes"], ["y"], mode="linear",
+                              coordinate_transformation_mode="half_pixel")]
+    io = lambda name, dims: helper.make_tensor_value_info(name, TensorProto.FLOAT, dims)  # noqa: E731
+    graph = helper.make_graph(nodes, "resize", [io("x", [1, channels, "h", "w"]),
+                                                io("skip", [1, 1, "H", "W"])],
+                              [io("y", [1, channels, "H", "W"])],
+                              [i64("z", [0]), i64("two", [2]), i64("four", [4])])
+    return onnx.helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+
+
+def test_a_resize_as_matrix_products_computes_the_resize(rng):
+    """training.onnx_graph.resizes_as_matmuls: the same interpolation as onnxruntime's Resize
+    at the odd sizes the packaged network's deepest one meets (16 -> 31 rows at 248, 15 -> 29
+    at 232, 20 -> 39 at 312) and at 2x, within float rounding."""
+    import onnxruntime as ort
+
+    from training.onnx_graph import resizes_as_matmuls
+
+    plain = _resize_graph(8)
+    fast = _resize_graph(8)
+    assert resizes_as_matmuls(fast) == 1 and resizes_as_matmuls(_resize_graph(8), first=0) == 0
+    assert not [n for n in fast.graph.node if n.op_type == "Resize"]
+    runs = [ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"])
+            for m in (plain, fast)]
+    for (h, w), (big_h, big_w) in (((16, 40), (31, 80)), ((15, 40), (29, 80)),
+                                   ((20, 40), (39, 80)), ((5, 7), (10, 14)), ((3, 4), (3, 9))):
+        feed = {"x": rng.normal(0, 3, (1, 8, h, w)).astype(np.float32),
+                "skip": np.zeros((1, 1, big_h, big_w), np.float32)}
+        want, got = (r.run(None, feed)[0] for r in runs)
+        assert got.shape == want.shape == (1, 8, big_h, big_w)
+        np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+@needs_model
+def test_the_packaged_model_runs_its_deepest_resize_as_matrix_products(tmp_path):
+    """The packaged file is its export with the 1/16 -> 1/8 Resize rewritten (python -m
+    training.onnx_graph); its two 2x Resizes stay, and a second rewrite is refused."""
+    onnx = pytest.importorskip("onnx")
+    from training.onnx_graph import RESIZE_MATMUL, main
+
+    graph = onnx.load(str(DEFAULT_MODEL)).graph
+    assert len([n for n in graph.node if n.op_type == "Resize"]) == 2
+    assert [n.name for n in graph.node if n.op_type == "MatMul"] == [
+        f"/Resize{RESIZE_MATMUL}/rows", f"/Resize{RESIZE_MATMUL}/cols"]
+    with pytest.raises(SystemExit, match="already rewritten"):
+        main([str(DEFAULT_MODEL), str(tmp_path / "again.onnx")])
