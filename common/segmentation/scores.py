@@ -96,14 +96,12 @@ class UpsampledScores:
         if len(blocks):
             self._block.reshape(-1)[blocks] = np.arange(len(blocks), dtype=np.int32)
             bi, bj = np.divmod(blocks, w + 1)
-            edged = np.empty((c, h + 2, w + 2), np.float32)
-            for k in range(c):
-                cv2.copyMakeBorder(scores[k], 1, 1, 1, 1, cv2.BORDER_REPLICATE, dst=edged[k])
-            edged = edged.reshape(c, -1)
-            top_left = bi * (w + 2) + bj  # the block's corners in the edged planes
-            tl, tr = np.take(edged, top_left, axis=1), np.take(edged, top_left + 1, axis=1)
-            bl, br = (np.take(edged, top_left + w + 2, axis=1),
-                      np.take(edged, top_left + w + 3, axis=1))
+            # the block's corners in the score planes, edges replicated by clipping
+            top, bottom = np.maximum(bi - 1, 0) * w, np.minimum(bi, h - 1) * w
+            left, right = np.maximum(bj - 1, 0), np.minimum(bj, w - 1)
+            flat = scores.reshape(c, -1)
+            tl, tr = np.take(flat, top + left, axis=1), np.take(flat, top + right, axis=1)
+            bl, br = np.take(flat, bottom + left, axis=1), np.take(flat, bottom + right, axis=1)
             # (C, 2 dy + dx, block): a pixel weighs its own corner 3/4 along each axis
             blend = np.empty((c, 4, len(blocks)), np.float32)
             for dx, (near, far) in enumerate(((0.75, 0.25), (0.25, 0.75))):
