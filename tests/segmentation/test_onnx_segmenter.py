@@ -499,3 +499,31 @@ def test_the_packaged_model_runs_its_deepest_resize_as_matrix_products(tmp_path)
         f"/Resize{RESIZE_MATMUL}/rows", f"/Resize{RESIZE_MATMUL}/cols"]
     with pytest.raises(SystemExit, match="already rewritten"):
         main([str(DEFAULT_MODEL), str(tmp_path / "again.onnx")])
+
+
+@needs_model
+def test_border_net_decides_only_from_the_callers_first_row_on():
+    """With a `first_row` (the car's IPM ROI), the border classifier decides the rows from it
+    down exactly as on the whole frame, and leaves the network's labels on the context rows
+    above it (less the rows its decisions reach up to)."""
+    from common.camera import camera_from_config
+    from common.config import CameraConfig
+    from common.segmentation import roi_first_row
+    from common.segmentation.onnx import BORDER_REACH_ROWS
+    from services.bench.heldout import render_heldout
+
+    camera = camera_from_config(CameraConfig())
+    row = roi_first_row(camera, 3.0, 12.0, 8.0)
+    seg = OnnxSegmenter(camera=camera, first_row=row, flip="off")
+    assert seg.sky_rows < row - BORDER_REACH_ROWS
+    pairs, _ = render_heldout("town:0.6", frames=4, seed=5)
+    changed = 0
+    for image, _ in pairs:
+        small, labels, score_at = seg.network_labels(image)
+        whole = seg.border_net(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), labels, score_at)
+        got = seg.refined_borders(small, small, labels, score_at)
+        np.testing.assert_array_equal(got[row:], whole[row:])
+        np.testing.assert_array_equal(got[:row - BORDER_REACH_ROWS],
+                                      labels[:row - BORDER_REACH_ROWS])
+        changed += int((whole[row:] != labels[row:]).sum())
+    assert changed > 100  # the classifier re-decided borders in the ROI's rows
