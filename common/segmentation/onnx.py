@@ -341,7 +341,9 @@ class OnnxSegmenter(Segmenter):
                     arg = cv2.resize(arg, band, interpolation=cv2.INTER_NEAREST)
                 score_at = partial(subpixel_scores_at, scores, self.subpixel, scale=scale)
             elif band == (2 * scores.shape[2], 2 * scores.shape[1]):
-                upsampled = UpsampledScores(scores)  # our model: only the mixed 2x2 blocks
+                # our model: only the mixed 2x2 blocks, from the first row decided on
+                first = round(self._first_decided_row() * out_h / h) - sky
+                upsampled = UpsampledScores(scores, max(first, 0))
                 arg, score_at = upsampled.labels, upsampled
             else:
                 if band != scores.shape[:0:-1]:
@@ -401,6 +403,12 @@ class OnnxSegmenter(Segmenter):
                                           **self.refine)
         return labels
 
+    def _first_decided_row(self) -> int:
+        """The first row (at input size) of which the paint borders are decided, and so of
+        which the upsampled argmax is needed: BORDER_REACH_ROWS above the caller's
+        `first_row` (0 without one)."""
+        return max(self._first_row_in - BORDER_REACH_ROWS, 0)
+
     def _border_net_below_sky(self, small, labels, score_at) -> np.ndarray:
         """border_net on the rows from BORDER_REACH_ROWS above the first row it must decide
         down: the first row segmented (the sky rows are labelled none, so no paint border
@@ -410,8 +418,7 @@ class OnnxSegmenter(Segmenter):
         which may differ), without a third of the frame's grey conversion, masks and
         morphology and the quarter of its border pixels that lie in the context rows above
         the IPM ROI (2026-12-02: 27 % of those decided on benchmark frames)."""
-        top = max(self.sky_rows, self._first_row_in) - BORDER_REACH_ROWS
-        top = max(top, 0)
+        top = max(self.sky_rows - BORDER_REACH_ROWS, self._first_decided_row(), 0)
         view = labels[top:]
         band = self.border_net(cv2.cvtColor(small[top:], cv2.COLOR_RGB2GRAY), view,
                                partial(rows_below, score_at, -top) if top else score_at)

@@ -160,6 +160,16 @@ def test_upsampled_argmax_equals_the_resize_then_argmax(rng):
         np.testing.assert_allclose(upsampled(ys[order], xs[order]), up.reshape(6, -1)[:, order],
                                    atol=1e-5)
         assert upsampled(ys[:0], xs[:0]).shape == (6, 0)
+        # from a first row on, the same labels and scores; above it the class of each
+        # pixel's block's first coarse pixel (up and left of it, edges replicated)
+        coarse = argmax_channels(scores)
+        corner = coarse[np.maximum((np.arange(38) - 1) >> 1, 0)][:, np.maximum(
+            (np.arange(66) - 1) >> 1, 0)]
+        for first in (1, 6, 7):
+            part = UpsampledScores(scores, first)
+            np.testing.assert_array_equal(part.labels[first:], upsampled.labels[first:])
+            np.testing.assert_array_equal(part.labels[:first - 1], corner[:first - 1])
+            np.testing.assert_allclose(part(ys, xs), up.reshape(6, -1), atol=1e-5)
     flat = UpsampledScores(np.zeros((6, 4, 5), np.float32))  # no mixed block: nothing kept
     assert (flat.labels == 0).all() and flat([1, 7], [2, 9]).shape == (6, 2)
 
