@@ -322,7 +322,10 @@ class OnnxSegmenter(Segmenter):
         are sub-pixel logits (metadata `subpixel`): labels at the input size, resized to
         out_size (nearest) when one is given. `score_at(ys, xs)` -> (C, N) gives the upsampled
         scores of the last head at label pixels (ys, xs) (for sub-pixel logits, those of the
-        full-resolution pixel's own sub-grid)."""
+        full-resolution pixel's own sub-grid). The sky rows are labelled none, and so are,
+        given a `first_row`, the rows above it less BORDER_REACH_ROWS: the network reads the
+        context rows above the caller's first row, but its labels there are not upsampled
+        nor refined (since 2026-12-02: before, a full-frame IoU counted them)."""
         w, h = self.input_size
         small = image_rgb  # resized once, for the network and the refinement
         if small.shape[:2] != (h, w):
@@ -362,13 +365,21 @@ class OnnxSegmenter(Segmenter):
                 labels = mapped
             else:
                 labels = np.where(mapped > 0, mapped, labels)
-        if sky:
-            full = np.zeros((out_h, out_w), np.uint8)
-            full[sky:] = labels
-            labels = full
-            if score_at is not None:
-                score_at = partial(rows_below, score_at, sky)
+        labels = self._in_frame(labels, sky, out_h / h)
+        if sky and score_at is not None:
+            score_at = partial(rows_below, score_at, sky)
         return small, labels.astype(np.uint8), score_at
+
+    def _in_frame(self, labels: np.ndarray, sky: int, scale: float) -> np.ndarray:
+        """The labels of the rows from `sky` down in the whole frame (output rows per input
+        row `scale`): the sky rows none, and the context rows above the first row decided
+        (the network reads them; the caller uses none of them)."""
+        none = max(sky, round(self._first_decided_row() * scale))
+        if not none:
+            return labels
+        full = np.zeros((sky + labels.shape[0], labels.shape[1]), np.uint8)
+        full[none:] = labels[none - sky:]
+        return full
 
     def run_network(self, x: np.ndarray) -> list[np.ndarray]:
         """The outputs of the heads in `priority` for model input `x` (1, 3, h, w), as
