@@ -134,8 +134,9 @@ class SegmentationConfig:
     # "alternate" (one pass a frame) is the default: two passes ("average", the packaged file's
     # own) cost 1.5-1.7x the time, over the 15 ms a frame on one core (MODEL_CARD.md)
     flip: str = "alternate"  # empty: the model's own; else off, average or alternate (FLIP_MODES)
-    # segment only the rows the role's IPM ROI reads (and 80 rows of context above it); the
-    # rows above are labelled none (the mapper's 3-11 m: 232 rows of 360 through the network)
+    # segment only the rows the role's IPM ROI reads, the network seeing 80 rows of context
+    # above them; the rows above the ROI (less 5) are labelled none (the mapper's 3-11 m: 232
+    # rows of 360 through the network)
     roi_rows_only: bool = True
 
 

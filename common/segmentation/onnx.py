@@ -17,6 +17,7 @@ from common.config import FLIP_MODES, SegmentationConfig
 from common.errors import ConfigError
 from common.segmentation.base import Segmenter
 from common.segmentation.refine import (
+    BORDER_BOX,
     REFINE_DEFAULTS,
     BorderNet,
     refine_paint_borders,
@@ -54,6 +55,12 @@ META_KEY = "roadmap.segmentation"
 # 0.740 with the last row repeated and 0.665 with zeros. 2026-11-25, every second benchmark
 # frame, with border_net.)
 SKY_ROW_STEP = 16
+
+
+# rows above a pixel that BorderNet's decision there reads: the labels' 3x3 neighbourhood
+# (whether it lies on a paint border) and its box of BORDER_BOX rows; the row above the sky
+# rows, none, is the outer side of a border where paint reaches the first row segmented
+BORDER_REACH_ROWS = 1 + BORDER_BOX // 2
 
 
 # the sky margin (degrees above level) of a model whose metadata names none: `s` networks such
@@ -210,8 +217,9 @@ class OnnxSegmenter(Segmenter):
         self.first_row = int(first_row)
         if self.first_row < 0:
             raise ConfigError(f"first_row must be >= 0, got {first_row}")
+        image_h = camera.height if camera is not None else h
+        self._first_row_in = int(self.first_row * h / image_h)  # at input size
         if self.first_row:  # the caller's first row, less the context, in whole steps
-            image_h = camera.height if camera is not None else h
             top = self.first_row * h / image_h - FIRST_ROW_CONTEXT * h / image_h
             self.sky_rows = max(self.sky_rows, int(max(top, 0)) // SKY_ROW_STEP * SKY_ROW_STEP)
         height = inp.shape[2]
@@ -314,7 +322,10 @@ class OnnxSegmenter(Segmenter):
         are sub-pixel logits (metadata `subpixel`): labels at the input size, resized to
         out_size (nearest) when one is given. `score_at(ys, xs)` -> (C, N) gives the upsampled
         scores of the last head at label pixels (ys, xs) (for sub-pixel logits, those of the
-        full-resolution pixel's own sub-grid)."""
+        full-resolution pixel's own sub-grid). The sky rows are labelled none, and so are,
+        given a `first_row`, the rows above it less BORDER_REACH_ROWS: the network reads the
+        context rows above the caller's first row, but its labels there are not upsampled
+        nor refined (since 2026-12-02: before, a full-frame IoU counted them)."""
         w, h = self.input_size
         small = image_rgb  # resized once, for the network and the refinement
         if small.shape[:2] != (h, w):
@@ -333,7 +344,9 @@ class OnnxSegmenter(Segmenter):
                     arg = cv2.resize(arg, band, interpolation=cv2.INTER_NEAREST)
                 score_at = partial(subpixel_scores_at, scores, self.subpixel, scale=scale)
             elif band == (2 * scores.shape[2], 2 * scores.shape[1]):
-                upsampled = UpsampledScores(scores)  # our model: only the mixed 2x2 blocks
+                # our model: only the mixed 2x2 blocks, from the first row decided on
+                first = round(self._first_decided_row() * out_h / h) - sky
+                upsampled = UpsampledScores(scores, max(first, 0))
                 arg, score_at = upsampled.labels, upsampled
             else:
                 if band != scores.shape[:0:-1]:
@@ -352,13 +365,21 @@ class OnnxSegmenter(Segmenter):
                 labels = mapped
             else:
                 labels = np.where(mapped > 0, mapped, labels)
-        if sky:
-            full = np.zeros((out_h, out_w), np.uint8)
-            full[sky:] = labels
-            labels = full
-            if score_at is not None:
-                score_at = partial(rows_below, score_at, sky)
+        labels = self._in_frame(labels, sky, out_h / h)
+        if sky and score_at is not None:
+            score_at = partial(rows_below, score_at, sky)
         return small, labels.astype(np.uint8), score_at
+
+    def _in_frame(self, labels: np.ndarray, sky: int, scale: float) -> np.ndarray:
+        """The labels of the rows from `sky` down in the whole frame (output rows per input
+        row `scale`): the sky rows none, and the context rows above the first row decided
+        (the network reads them; the caller uses none of them)."""
+        none = max(sky, round(self._first_decided_row() * scale))
+        if not none:
+            return labels
+        full = np.zeros((sky + labels.shape[0], labels.shape[1]), np.uint8)
+        full[none:] = labels[none - sky:]
+        return full
 
     def run_network(self, x: np.ndarray) -> list[np.ndarray]:
         """The outputs of the heads in `priority` for model input `x` (1, 3, h, w), as
@@ -384,7 +405,7 @@ class OnnxSegmenter(Segmenter):
         settings ask for it. Either runs after the `min_margin` gate, so a border pixel the
         gate left unknown can be given back to the paint beside it."""
         if self.border_net and score_at is not None and labels.shape == small.shape[:2]:
-            return self.border_net(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), labels, score_at)
+            return self._border_net_below_sky(small, labels, score_at)
         if self.refine:
             img = small if labels.shape == small.shape[:2] else image_rgb
             if img.shape[:2] != labels.shape:  # labels at an out_size other than the frame's
@@ -392,6 +413,31 @@ class OnnxSegmenter(Segmenter):
             labels = refine_paint_borders(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), labels,
                                           **self.refine)
         return labels
+
+    def _first_decided_row(self) -> int:
+        """The first row (at input size) of which the paint borders are decided, and so of
+        which the upsampled argmax is needed: BORDER_REACH_ROWS above the caller's
+        `first_row` (0 without one)."""
+        return max(self._first_row_in - BORDER_REACH_ROWS, 0)
+
+    def _border_net_below_sky(self, small, labels, score_at) -> np.ndarray:
+        """border_net on the rows from BORDER_REACH_ROWS above the first row it must decide
+        down: the first row segmented (the sky rows are labelled none, so no paint border
+        lies higher than the row just above them) or, lower, the caller's `first_row`. Every
+        row from that one down gets the labels of a run on the whole frame, bit for bit (rows
+        above the caller's first row keep the network's labels, but for the reach's rows,
+        which may differ), without a third of the frame's grey conversion, masks and
+        morphology and the quarter of its border pixels that lie in the context rows above
+        the IPM ROI (2026-12-02: 27 % of those decided on benchmark frames)."""
+        top = max(self.sky_rows - BORDER_REACH_ROWS, self._first_decided_row(), 0)
+        view = labels[top:]
+        band = self.border_net(cv2.cvtColor(small[top:], cv2.COLOR_RGB2GRAY), view,
+                               partial(rows_below, score_at, -top) if top else score_at)
+        if band is view:  # no border to re-decide
+            return labels
+        out = labels.copy()
+        out[top:] = band
+        return out
 
     def segment(self, image_rgb, labels_true=None) -> np.ndarray:
         if image_rgb is None:

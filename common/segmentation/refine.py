@@ -213,20 +213,21 @@ def border_features(gray: np.ndarray, labels: np.ndarray, scores: np.ndarray,
     # the band of rows the patches reach, edges repeated r pixels out
     y0, y1 = max(int(ys[0]) - r, 0), min(int(ys[-1]) + r + 1, h)
     pad = (r - (int(ys[0]) - y0), r - (y1 - int(ys[-1]) - 1), r, r)
-    grey_band = cv2.copyMakeBorder(gray[y0:y1], *pad, cv2.BORDER_REPLICATE).astype(np.float32)
-    paint_band = cv2.copyMakeBorder(paint[y0:y1], *pad, cv2.BORDER_REPLICATE).astype(np.float32)
+    grey_band = cv2.copyMakeBorder(gray[y0:y1], *pad, cv2.BORDER_REPLICATE)
+    paint_band = cv2.copyMakeBorder(paint[y0:y1], *pad, cv2.BORDER_REPLICATE)
     width = w + 2 * r
     offsets = (np.arange(-r, r + 1)[:, None] * width + np.arange(-r, r + 1)).reshape(-1, 1)
     idx = offsets + ((ys - (int(ys[0]) - r)) * width + xs + r)  # (patch, N) in the padded band
     out = np.empty((BORDER_FEATURES, len(border)), np.float32)
     grey = out[:_PATCH]
-    np.take(grey_band, idx, out=grey, mode="clip")
+    # gathered as bytes, then widened: the bands stay uint8 (no float copy of the band)
+    grey[...] = np.take(grey_band, idx, mode="clip")
     road_grey = np.where(n_road > 0, road_grey, grey.min(axis=0))
     contrast = paint_grey - road_grey
     grey -= road_grey
     grey /= np.maximum(contrast, 10.0)
     np.clip(grey, -3.0, 3.0, out=grey)
-    np.take(paint_band, idx, out=out[_PATCH:2 * _PATCH], mode="clip")
+    out[_PATCH:2 * _PATCH] = np.take(paint_band, idx, mode="clip")
     rel = out[2 * _PATCH:2 * _PATCH + NUM_CLASSES]
     rel[...] = scores
     rel -= scores.max(axis=0)

@@ -21,7 +21,8 @@ full resolution (labels resized back from the model's input size), and also insi
 product runs it: the rows above rays rising the model's sky margin above level (metadata
 `sky_margin_deg`, else 10 degrees; the nominal camera's `sky_rows`) are not segmented
 (`--sky-margin-deg D` for every model; -1: every row), nor, as segmentation.roi_rows_only
-does, the rows above the car's IPM ROI less 80 rows of context (`first_row`; --no-roi-rows:
+does, the rows above the car's IPM ROI (`first_row`: the network reads 80 of them as
+context, and the rows above the ROI less 5 are labelled none, since 2026-12-02; --no-roi-rows:
 every row below the sky), so that the full-frame IoU counts those rows as none: compare
 `iou_roi` across the two; and the mirror image is used as segmentation.flip says
 ("alternate", one pass a frame; --flip for another). Speed:

@@ -160,6 +160,16 @@ def test_upsampled_argmax_equals_the_resize_then_argmax(rng):
         np.testing.assert_allclose(upsampled(ys[order], xs[order]), up.reshape(6, -1)[:, order],
                                    atol=1e-5)
         assert upsampled(ys[:0], xs[:0]).shape == (6, 0)
+        # from a first row on, the same labels and scores; above it the class of each
+        # pixel's block's first coarse pixel (up and left of it, edges replicated)
+        coarse = argmax_channels(scores)
+        corner = coarse[np.maximum((np.arange(38) - 1) >> 1, 0)][:, np.maximum(
+            (np.arange(66) - 1) >> 1, 0)]
+        for first in (1, 6, 7):
+            part = UpsampledScores(scores, first)
+            np.testing.assert_array_equal(part.labels[first:], upsampled.labels[first:])
+            np.testing.assert_array_equal(part.labels[:first - 1], corner[:first - 1])
+            np.testing.assert_allclose(part(ys, xs), up.reshape(6, -1), atol=1e-5)
     flat = UpsampledScores(np.zeros((6, 4, 5), np.float32))  # no mixed block: nothing kept
     assert (flat.labels == 0).all() and flat([1, 7], [2, 9]).shape == (6, 2)
 
@@ -416,3 +426,114 @@ def test_a_class_margin_leaves_only_that_classes_unsure_pixels_unknown(rng):
     assert not (strict == 5).any()
     others = (plain != 5) & (strict != 0)
     assert np.array_equal(strict[others], plain[others])
+
+
+@needs_model
+def test_border_net_below_the_sky_gives_the_whole_frames_labels():
+    """With sky rows, the border classifier runs on the rows just above them and below only:
+    on rendered town frames, bit for bit the labels it gives run on the whole frame, with and
+    without the mirror image. (The sky cut here, 208 rows, lies in the road's paint, so that
+    borders meet the first row segmented; the product's, 80 rows above the ROI, sees no
+    paint there.)"""
+    from services.bench.heldout import render_heldout
+
+    seg = OnnxSegmenter(sky_fraction=0.6, flip="alternate")
+    assert seg.border_net is not None and seg.sky_rows == 208
+    pairs, _ = render_heldout("town:0.6", frames=4, seed=5)
+    changed = top = 0
+    for image, _ in pairs:
+        for _ in range(2):  # the image, then its mirror
+            small, labels, score_at = seg.network_labels(image)
+            whole = seg.border_net(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), labels, score_at)
+            np.testing.assert_array_equal(seg.refined_borders(small, small, labels, score_at),
+                                          whole)
+            changed += int((whole != labels).sum())
+            top += int((labels[seg.sky_rows] >= Cls.LANE_LINE).sum())
+    assert changed > 100 and top > 0  # borders re-decided, paint in the first row segmented
+
+
+def _resize_graph(channels: int):
+    """x (1, C, h, w) resized to skip's (H, W) as the exported decoder does (sizes from the
+    shapes, linear, half-pixel)."""
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper, numpy_helper
+
+    i64 = lambda name, v: numpy_helper.from_array(np.array(v, np.int64), name)  # noqa: E731
+    nodes = [helper.make_node("Shape", ["x"], ["sx"]), helper.make_node("Shape", ["skip"], ["ss"]),
+             helper.make_node("Slice", ["sx", "z", "two"], ["nc"]),
+             helper.make_node("Slice", ["ss", "two", "four"], ["hw"]),
+             helper.make_node("Concat", ["nc", "hw"], ["sizes"], axis=0),
+             helper.make_node("Resize", ["x", "", "", "sizes"], ["y"], mode="linear",
+                              coordinate_transformation_mode="half_pixel")]
+    io = lambda name, dims: helper.make_tensor_value_info(name, TensorProto.FLOAT, dims)  # noqa: E731
+    graph = helper.make_graph(nodes, "resize", [io("x", [1, channels, "h", "w"]),
+                                                io("skip", [1, 1, "H", "W"])],
+                              [io("y", [1, channels, "H", "W"])],
+                              [i64("z", [0]), i64("two", [2]), i64("four", [4])])
+    return onnx.helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+
+
+def test_a_resize_as_matrix_products_computes_the_resize(rng):
+    """training.onnx_graph.resizes_as_matmuls: the same interpolation as onnxruntime's Resize
+    at the odd sizes the packaged network's deepest one meets (16 -> 31 rows at 248, 15 -> 29
+    at 232, 20 -> 39 at 312) and at 2x, within float rounding."""
+    import onnxruntime as ort
+
+    from training.onnx_graph import resizes_as_matmuls
+
+    plain = _resize_graph(8)
+    fast = _resize_graph(8)
+    assert resizes_as_matmuls(fast) == 1 and resizes_as_matmuls(_resize_graph(8), first=0) == 0
+    assert not [n for n in fast.graph.node if n.op_type == "Resize"]
+    runs = [ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"])
+            for m in (plain, fast)]
+    for (h, w), (big_h, big_w) in (((16, 40), (31, 80)), ((15, 40), (29, 80)),
+                                   ((20, 40), (39, 80)), ((5, 7), (10, 14)), ((3, 4), (3, 9))):
+        feed = {"x": rng.normal(0, 3, (1, 8, h, w)).astype(np.float32),
+                "skip": np.zeros((1, 1, big_h, big_w), np.float32)}
+        want, got = (r.run(None, feed)[0] for r in runs)
+        assert got.shape == want.shape == (1, 8, big_h, big_w)
+        np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+@needs_model
+def test_the_packaged_model_runs_its_deepest_resize_as_matrix_products(tmp_path):
+    """The packaged file is its export with the 1/16 -> 1/8 Resize rewritten (python -m
+    training.onnx_graph); its two 2x Resizes stay, and a second rewrite is refused."""
+    onnx = pytest.importorskip("onnx")
+    from training.onnx_graph import RESIZE_MATMUL, main
+
+    graph = onnx.load(str(DEFAULT_MODEL)).graph
+    assert len([n for n in graph.node if n.op_type == "Resize"]) == 2
+    assert [n.name for n in graph.node if n.op_type == "MatMul"] == [
+        f"/Resize{RESIZE_MATMUL}/rows", f"/Resize{RESIZE_MATMUL}/cols"]
+    with pytest.raises(SystemExit, match="already rewritten"):
+        main([str(DEFAULT_MODEL), str(tmp_path / "again.onnx")])
+
+
+@needs_model
+def test_border_net_decides_only_from_the_callers_first_row_on():
+    """With a `first_row` (the car's IPM ROI), the border classifier decides the rows from it
+    down exactly as on the whole frame, and leaves the network's labels on the context rows
+    above it (less the rows its decisions reach up to)."""
+    from common.camera import camera_from_config
+    from common.config import CameraConfig
+    from common.segmentation import roi_first_row
+    from common.segmentation.onnx import BORDER_REACH_ROWS
+    from services.bench.heldout import render_heldout
+
+    camera = camera_from_config(CameraConfig())
+    row = roi_first_row(camera, 3.0, 12.0, 8.0)
+    seg = OnnxSegmenter(camera=camera, first_row=row, flip="off")
+    assert seg.sky_rows < row - BORDER_REACH_ROWS
+    pairs, _ = render_heldout("town:0.6", frames=4, seed=5)
+    changed = 0
+    for image, _ in pairs:
+        small, labels, score_at = seg.network_labels(image)
+        whole = seg.border_net(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), labels, score_at)
+        got = seg.refined_borders(small, small, labels, score_at)
+        np.testing.assert_array_equal(got[row:], whole[row:])
+        np.testing.assert_array_equal(got[:row - BORDER_REACH_ROWS],
+                                      labels[:row - BORDER_REACH_ROWS])
+        changed += int((whole[row:] != labels[row:]).sum())
+    assert changed > 100  # the classifier re-decided borders in the ROI's rows
