@@ -170,9 +170,6 @@ class LocalizerConfig:
     # along-road errors swing the scale, and the position saw-tooth with the dashes
     scale_walk_per_s: float = 3e-5  # random walk of that scale, 1/sqrt(s)
     scale_sigma0: float = 0.03  # that scale's prior sigma at each (re)start of the filter
-    # ... learnt only once a match has fixed the along-road position to within this sigma
-    # since the (re)start, m (0: from the first match; Localizer._fuse)
-    scale_fix_sigma_m: float = 0.2
     yaw_rate_sigma_dps: float = 0.3
     max_position_sigma_m: float = 1.0  # the filter trusts itself below this (re-init above)
     # integrity: a pose is reported ok only while its protection level (integrity_k x the

@@ -200,19 +200,14 @@ class PoseFilter:
         return self._update(np.asarray(pose, float), np.eye(3, 6), np.asarray(cov, float))
 
     def update_posterior(
-        self, pose: np.ndarray, information: np.ndarray, gate_chi2: float = 16.27,
-        learn_scale: bool = True,
+        self, pose: np.ndarray, information: np.ndarray, gate_chi2: float = 16.27
     ) -> bool:
         """Accept a pose already fused with this filter's prediction (ICP with the prediction as
         its prior) together with the information its measurements added (3x3 over the pose).
 
-        The pose block becomes (P^-1 + information)^-1; the other states follow the pose through
-        their prior correlation (they are observed only through the pose). Gated by the shift of
-        the pose relative to the prediction's covariance.
-
-        learn_scale False keeps the odometry scale as a considered state (Schmidt): its value and
-        variance stay, its correlation with the pose is what the update leaves of it (used
-        until the along-road position has been fixed once: Localizer._fuse)."""
+        The pose block becomes (P^-1 + information)^-1; the odometry scale follows the pose through
+        its prior correlation (it is observed only through the pose). Gated by the shift of the
+        pose relative to the prediction's covariance."""
         if not self.initialized:
             return False
         P = self.ekf.P
@@ -224,26 +219,19 @@ class PoseFilter:
             self.rejections += 1
             return False
         self.rejections = 0
-        Ppp_inv = np.linalg.inv(Ppp)
-        Ppp_post = np.linalg.inv(Ppp_inv + information)
+        Ppp_post = np.linalg.inv(np.linalg.inv(Ppp) + information)
         Ppp_post = 0.5 * (Ppp_post + Ppp_post.T)
-        P_op = P[3:, :3]
-        A = P_op.copy()  # the other states' gain is A Ppp^-1: the regression on the pose
-        if not learn_scale:
-            A[0] = 0.0
+        K = P[3:, :3] @ np.linalg.inv(Ppp)  # regression of the scale on the pose
         x = self.ekf.x.reshape(-1).copy()
-        x[3:] = x[3:] + A @ Ppp_inv @ shift
+        x[3:] = x[3:] + K @ shift
         x[:3] = np.asarray(pose, float)
         x[2] = float(wrap_angle(x[2]))
         x[3] = _clamp_scale(x[3])
-        # covariance of that gain (for A = P_op the optimal P_oo - P_op N P_po)
-        N = Ppp_inv @ (Ppp - Ppp_post) @ Ppp_inv
         P_new = np.empty_like(P)
         P_new[:3, :3] = Ppp_post
-        P_new[3:, :3] = P_op @ Ppp_inv @ Ppp_post
+        P_new[3:, :3] = K @ Ppp_post
         P_new[:3, 3:] = P_new[3:, :3].T
-        P_oo = P[3:, 3:] - A @ N @ P_op.T - P_op @ N @ A.T + A @ N @ A.T
-        P_new[3:, 3:] = 0.5 * (P_oo + P_oo.T)
+        P_new[3:, 3:] = P[3:, 3:] - K @ P[:3, 3:] + K @ Ppp_post @ K.T
         self.ekf.x = x.reshape(-1, 1)
         self.ekf.P = P_new
         return True

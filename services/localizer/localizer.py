@@ -60,7 +60,6 @@ class Localizer:
         reinit_gnss_rejections: int = 5,
         hold_m: float = LocalizerConfig.hold_along_road_m,
         hold_below_m: float = LocalizerConfig.hold_below_m,
-        scale_fix_sigma_m: float = LocalizerConfig.scale_fix_sigma_m,
         rival_travel_m: float = 200.0,
         rival_points: int = 4000,
         alert_limit_m: float = LocalizerConfig.alert_limit_m,
@@ -83,16 +82,17 @@ class Localizer:
         self.init_margin, self.reinit_bad_frames = init_margin, reinit_bad_frames
         self.recent_frames, self.recent_points = recent_frames, recent_points
         self.track_gate_m, self.init_min_marking_points = track_gate_m, init_min_marking_points
-        self.calibration_rate = calibration_rate
-        self.reinit_gnss_rejections = reinit_gnss_rejections
+        # camera attitude (pitch, roll) offset from the ICP attitude: constant, vibration averages
+        self.calibration = np.zeros(2)
+        self.calibration_rate, self.reinit_gnss_rejections = (calibration_rate,
+                                                              reinit_gnss_rejections)
         self.hold_m, self.hold_below_m = hold_m, hold_below_m
-        self.scale_fix_info = scale_fix_sigma_m**-2 if scale_fix_sigma_m > 0 else 0.0
         self.rival_travel_m, self.rival_points = rival_travel_m, rival_points
         self.alert_limit_m, self.integrity_k = alert_limit_m, integrity_k
         self.settle_frames, self.reacquire_settle_frames = settle_frames, reacquire_settle_frames
         self.min_marking_points, self.lost_after_frames = min_marking_points, lost_after_frames
-        self.hold_drift_per_m = hold_drift_per_m
-        self.dead_reckoning_drift_per_m = dead_reckoning_drift_per_m
+        self.hold_drift_per_m, self.dead_reckoning_drift_per_m = (hold_drift_per_m,
+                                                                  dead_reckoning_drift_per_m)
         self._start(seed)
 
     def _start(self, seed: int) -> None:
@@ -102,8 +102,6 @@ class Localizer:
         # it moves with the car; weighed on the submap until the map tells them apart
         self.rivals: list[tuple[np.ndarray, np.ndarray]] = []
         self.rivals_since_m = 0.0
-        # camera attitude (pitch, roll) offset from the ICP attitude: constant, vibration averages
-        self.calibration = np.zeros(2)
         # tracking: multi-frame matching
         self.recent: deque = deque(maxlen=max(self.recent_frames, 1))
         self._rng = np.random.default_rng(seed)
@@ -127,10 +125,6 @@ class Localizer:
         # accepted matches and their net correction since the (re)start or since markings came
         # back after a gap (Localizer._pulled_m)
         self.settled_matches, self.pull_since_gap = 0, np.zeros(2)
-        # whether a match has fixed the along-road position since the (re)start: until then its
-        # corrections remove the start's along-road error, which the odometry scale must not
-        # take for its own (Localizer._fuse)
-        self.along_fixed = False
 
     # -- verbs ------------------------------------------------------------------------------
 
@@ -215,9 +209,8 @@ class Localizer:
         keeps of it: the correction, the travel at the last match and along-road fix."""
         predicted = self.ekf.pose[:2]
         accepted = result is not None and self.ekf.update_posterior(
-            result.pose, self._held(result), learn_scale=self.along_fixed
+            result.pose, self._held(result)
         )
-        self.along_fixed |= accepted and self._fixes_along_road(result)
         if (accepted and self.unmatched_frames >= self.settle_frames  # markings are back
                 and self.settled_matches >= self.reacquire_settle_frames):  # (else settling)
             self.settled_matches, self.pull_since_gap = 0, np.zeros(2)
@@ -231,19 +224,6 @@ class Localizer:
         if accepted and not result.degenerate:  # the along-road position observed
             self.fix_travel_m, self.holding = self.travel_m, False
         return accepted
-
-    def _fixes_along_road(self, res: IcpResult) -> bool:
-        """Whether the match's own points (not the hold) fix the position along the car's
-        heading to within scale_fix_sigma_m.
-
-        Until one has since the (re)start, the odometry scale learns nothing from the matches
-        (PoseFilter.update_posterior learn_scale): a start on lane lines is often metres off
-        along the road with a sure covariance, and the weak along-road pulls that follow (a
-        line end in view; biased where a map line ends early) were read as a scale error of
-        2-5 %, on which the car then dead-reckoned."""
-        yaw = self.ekf.pose[2]
-        u = np.array([math.cos(yaw), math.sin(yaw)])
-        return float(u @ res.information[:2, :2] @ u) >= self.scale_fix_info
 
     def _lost(self) -> bool:
         """Past the filter's own bound after a run of frames without a match (not a fresh start
@@ -343,9 +323,12 @@ class Localizer:
         final = n >= self.submap.maxlen or self.travel_m >= self.init_travel_m
         if runner is not None and runner[0] > best[0] - self.init_margin and not final:
             return {"state": "init_ambiguous", "overlap": best[0], "runner_up": runner[0]}
-        rivals = [res for overlap, res in distinct[1:] if overlap > best[0] - self.init_margin]
-        self._start_filter(best[1], rivals=rivals)
-        self.rivals = [(res.pose, self.odom.copy()) for res in rivals]
+        self._start_filter(best[1])
+        self.rivals = [
+            (res.pose, self.odom.copy())
+            for overlap, res in distinct[1:]
+            if overlap > best[0] - self.init_margin
+        ]
         self.rivals_since_m = self.travel_m
         return {
             "state": "initialized",
@@ -419,15 +402,9 @@ class Localizer:
         return {"n": len(self.rivals), "switched": switch,
                 "overlaps": [round(o, 3) for o, _ in scored]}
 
-    def _start_filter(self, res: IcpResult, scale: float | None = None, rivals=()) -> None:
-        """Start the filter at a match. Equally good rival matches (a line's start seen 5 m
-        off, dashes a period apart) widen its position covariance by their spread: else the
-        first along-road fixes, pulling metres, are read as an odometry scale error."""
+    def _start_filter(self, res: IcpResult, scale: float | None = None) -> None:
         cov = res.cov.copy()
         cov[:2, :2] += np.eye(2) * self.init_sigma_m**2
-        for rival in rivals:
-            d = rival.pose[:2] - res.pose[:2]
-            cov[:2, :2] += np.outer(d, d)
         cov[2, 2] += math.radians(1.0) ** 2
         self.ekf.reset(res.pose, cov, scale)
         self.bad_frames = self.waiting_frames = self.unmatched_frames = 0
@@ -435,7 +412,6 @@ class Localizer:
         self.match_travel_m = self.travel_m
         self.corrections.clear()
         self.settled_matches, self.pull_since_gap = 0, np.zeros(2)
-        self.along_fixed = self.scale_fix_info == 0.0
         self.inits += 1
         logger.info("initialized at %s (init #%d)", np.round(res.pose, 2), self.inits)
 
@@ -590,7 +566,6 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         reinit_bad_frames=lc.reinit_bad_frames,
         hold_m=lc.hold_along_road_m,
         hold_below_m=lc.hold_below_m,
-        scale_fix_sigma_m=lc.scale_fix_sigma_m,
         recent_frames=lc.recent_frames,
         track_gate_m=lc.icp_track_gate_m,
         alert_limit_m=lc.alert_limit_m,

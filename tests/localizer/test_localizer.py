@@ -191,63 +191,6 @@ def test_an_ambiguous_start_keeps_its_rivals_until_the_map_tells_them_apart(rng)
     assert np.hypot(last[0], last[1]) < 0.2 and est[-1].ok
 
 
-@pytest.mark.parametrize("rival_m", [None, 3.0, -5.0])
-def test_a_start_among_rivals_is_as_unsure_along_the_road_as_they_are_apart(road_cache, rival_m):
-    """A start whose match is sure of itself (0.2 m) while equally good rivals lie metres along
-    the road: the filter's along-road sigma spans them, so an along-road fix 15 m later that
-    pulls the car 1 m back moves the position, not the odometry scale. Without rivals the same
-    pull is (rightly, for a start that sure) mostly read as a scale error."""
-    from services.localizer.icp import IcpResult
-
-    loc = get_localizer(LocalizerConfig(), road_cache)
-    sure = np.diag([0.2**2, 0.05**2, 1e-4])
-    start = IcpResult(np.zeros(3), sure, 500, 500, 0.02, False, np.array([1.0, 0, 0]),
-                      np.zeros(3), 5, information=np.linalg.inv(sure))
-    rivals = [] if rival_m is None else [
-        IcpResult(np.array([rival_m, 0.0, 0.0]), sure, 500, 500, 0.02, False,
-                  np.array([1.0, 0, 0]), np.zeros(3), 5)]
-    loc._start_filter(start, rivals=rivals)
-    along = math.sqrt(loc.ekf.cov[0, 0])
-    for _ in range(15):
-        loc.ekf.predict(10.0, 0.0, 0.1)  # 15 m
-    fix = loc.ekf.pose - [1.0, 0.0, 0.0]
-    assert loc.ekf.update_posterior(fix, np.diag([1 / 0.05**2, 1 / 0.05**2, 1e4]))
-    scale_moved = abs(loc.ekf.odometry_scale - 1.0)
-    if rival_m is None:
-        assert along < 0.4 and scale_moved > 0.03
-    else:
-        assert along >= abs(rival_m) and scale_moved < 0.01
-
-
-def test_the_odometry_scale_learns_only_once_the_along_road_position_was_fixed(road_cache):
-    """After a start, along-road corrections remove the start's error: neither a weak pull
-    (a line end in view, sigma 0.5 m) nor the first sure fix teaches the scale; a correction
-    15 m after that fix does."""
-    from services.localizer.icp import IcpResult
-
-    loc = get_localizer(LocalizerConfig(scale_fix_sigma_m=0.2), road_cache)
-    sure = np.diag([0.2**2, 0.05**2, 1e-4])
-    loc._start_filter(IcpResult(np.zeros(3), sure, 500, 500, 0.02, False,
-                                np.array([1.0, 0, 0]), np.zeros(3), 5))
-
-    def match(back_m, along_sigma_m):
-        info = np.diag([along_sigma_m**-2, 0.05**-2, 1e4])
-        pose = loc.ekf.pose - [back_m, 0.0, 0.0]
-        return IcpResult(pose, np.linalg.inv(info), 500, 500, 0.02, False,
-                         np.array([1.0, 0, 0]), np.zeros(3), 5, information=info)
-
-    def drive(m):
-        for _ in range(int(m)):
-            loc.ekf.predict(10.0, 0.0, 0.1)
-
-    drive(15)
-    assert loc._fuse(match(0.1, 0.5)) and loc.ekf.odometry_scale == 1.0  # weak: position only
-    assert loc._fuse(match(0.5, 0.05)) and loc.ekf.odometry_scale == 1.0  # the first fix
-    assert loc.ekf.pose[0] == pytest.approx(15.0 - 0.6, abs=0.05)
-    drive(15)
-    assert loc._fuse(match(0.3, 0.05)) and loc.ekf.odometry_scale < 0.995  # 15 m on: scale
-
-
 def test_a_rival_that_matches_better_takes_over(rng):
     """The filter tracks 3 m ahead of the truth on a stretch of solid lines, with the true pose
     as its rival; when an arrow comes into view the rival matches better and the filter
