@@ -16,7 +16,7 @@ from pathlib import Path
 
 from common.errors import ConfigError
 from services.eval.figure import eval_figure
-from services.eval.replay import replay_drive
+from services.eval.replay import RUN_KEYS, replay_drive
 from services.eval.run import run_suite, suite_settings
 from services.eval.suite import DEFAULT_SEEDS, Drive, parse_seeds, suite_drives
 from services.eval.summary import summarize
@@ -75,8 +75,7 @@ def relocalized(run: Path, sets: list[str], workers: int) -> list[dict]:
         scores = pool.map(replay_drive, [d for d, _ in redo], [sets] * len(redo),
                           [True] * len(redo))
         for (drive_dir, entry), r in zip(redo, scores, strict=True):
-            entry["score"] = {k: v for k, v in r.items()
-                              if k not in ("drive", "inits", "cpu_s", "ok_frames")}
+            entry["score"] = {k: v for k, v in r.items() if k not in RUN_KEYS}
             logger.info("%s re-localized: %d ok frames, %d inits, %.0f s CPU", drive_dir.name,
                         r["ok_frames"], r["inits"], r["cpu_s"])
     return entries

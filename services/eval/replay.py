@@ -32,6 +32,8 @@ from services.localizer.tiles import decode_tile_message
 logger = logging.getLogger(__name__)
 
 CACHE = Path("/tmp/roadmap-replay")
+# what replay_drive says of the run itself, beside the drive's score
+RUN_KEYS = ("drive", "inits", "cpu_s", "ok_frames")
 
 
 def stored_config(drive_dir: Path, sets: list[str]):
@@ -104,8 +106,9 @@ def replay_drive(drive_dir: Path, sets: list[str], keep_errors: bool = False) ->
                          log.streams["frame_pose_true"], in_view)
     if not keep_errors:
         score.pop("errors_m")
-    return {"drive": drive_dir.name, "inits": loc.inits, "cpu_s": round(cpu_s, 1),
-            "ok_frames": int(ok.sum()), **score}
+    run = dict(zip(RUN_KEYS, (drive_dir.name, loc.inits, round(cpu_s, 1), int(ok.sum())),
+                   strict=True))
+    return {**run, **score}
 
 
 def _pick(frame, roll: bool):

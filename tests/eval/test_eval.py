@@ -102,16 +102,16 @@ def test_roadmap_eval_runs_a_drive_scores_it_and_resumes(tmp_path):
     assert again.returncode == 0 and "town-s101: ok" in again.stderr
     other = roadmap("eval", "--world", "town", "--seeds", "101", "--out", str(out), timeout=60)
     assert other.returncode == 1 and "other settings" in other.stderr
-    # re-localized offline with the same localizer: the live car's figures, to the digit
-    again = tmp_path / "relocalized"
-    res = roadmap("eval", "--relocalize", str(out), "--out", str(again), timeout=300)
+    # re-localized offline with the same localizer: the live car's figures, to 1e-6
+    relocal = tmp_path / "relocalized"
+    res = roadmap("eval", "--relocalize", str(out), "--out", str(relocal), timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
-    (redo,) = json.loads((again / "eval.json").read_text())["drives"]
+    (redo,) = json.loads((relocal / "eval.json").read_text())["drives"]
     live, replayed = drive["score"], redo["score"]
     assert replayed["integrity_violations"] == live["integrity_violations"]
     for k in ("x_m", "y_m", "yaw_deg"):
         assert replayed["markings_in_view"][k]["mean"] == pytest.approx(
             live["markings_in_view"][k]["mean"], rel=1e-6)
-    assert (again / "eval.png").stat().st_size > 1000
+    assert (relocal / "eval.png").stat().st_size > 1000
     same = roadmap("eval", "--relocalize", str(out), "--out", str(out), timeout=60)
     assert same.returncode != 0 and "another --out" in same.stderr
