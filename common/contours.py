@@ -126,8 +126,8 @@ def _check_labels(labels: np.ndarray) -> np.ndarray:
 def _road_mask(labels: np.ndarray) -> np.ndarray:
     mask = (labels > 0).astype(np.uint8)
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (ROAD_SMOOTH_CELLS, ROAD_SMOOTH_CELLS))
-    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, k)
-    return cv2.morphologyEx(mask, cv2.MORPH_OPEN, k)
+    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, k, borderType=cv2.BORDER_REPLICATE)
+    return cv2.morphologyEx(mask, cv2.MORPH_OPEN, k, borderType=cv2.BORDER_REPLICATE)
 
 
 def _components(mask: np.ndarray, epsilon: float, min_area: float) -> list[list[np.ndarray]]:
@@ -155,10 +155,20 @@ def _paint_components(mask: np.ndarray, epsilon: float, min_area: float):
             lines.append((line[0] + np.array([x0, y0]) * LINE_UNIT, line[1]))
             continue
         if CLOSE_MARKINGS:
-            sub = cv2.morphologyEx(sub, cv2.MORPH_CLOSE, kernel)
+            sub = _closed(sub, kernel)
         comps += _traced(sub, epsilon, min_area, offset=(x0, y0))
     comps.sort(key=lambda ar: -ar[0])
     return [rings for _, rings in comps], lines
+
+
+def _closed(sub: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """The 3x3 closing of one piece cut with a one-cell margin (none where the tile ends). The
+    margin is framed once more, by its own replica: zeros beside the piece, the piece itself
+    where it runs on past the tile's edge. Closed in place, the dilation filled the margin and
+    OpenCV's erosion, reading past the array as foreground, kept it: every polygon came back
+    one cell larger on each side (a 0.5 m crosswalk stripe 0.7 m wide; 2026-12-02)."""
+    framed = cv2.copyMakeBorder(sub, 1, 1, 1, 1, cv2.BORDER_REPLICATE)
+    return cv2.morphologyEx(framed, cv2.MORPH_CLOSE, kernel)[1:-1, 1:-1]
 
 
 def _centre_line(sub: np.ndarray, epsilon: float):
@@ -291,10 +301,42 @@ def _traced(mask, epsilon: float, min_area: float, offset=(0, 0)):
 def _simplify(contour: np.ndarray, epsilon: float) -> np.ndarray:
     """approxPolyDP, except where it would collapse a thin ring to a line (a 2-cell-wide dash
     becomes its diagonal): then the unsimplified ring is kept."""
-    ring = cv2.approxPolyDP(contour, epsilon, True) if len(contour) > 4 else contour
-    if len(ring) < 4 <= len(contour):
-        ring = contour
-    return ring.reshape(-1, 2).astype(np.int64)
+    return simplify_ring(contour, epsilon).astype(np.int64)
+
+
+def simplify_ring(contour: np.ndarray, epsilon: float) -> np.ndarray:
+    """A traced ring (k, 1, 2) or (k, 2) in tile cells -> its approxPolyDP simplification (k', 2),
+    keeping every vertex on the tile's edge. Where a shape runs on across the edge, the ring
+    follows that edge; simplified as one closed ring, a run along the edge can lose an end
+    vertex, and the chord left shaves the edge cells off for up to `epsilon` cells into the
+    tile: a seam without road between two tiles that both have road there (measured: 45 of 94
+    road cells of a tile's last column, Argoverse 2 log 7fab, 2026-12-02). The stretches between
+    edge vertices are simplified as open chains, which keep their ends. A ring that would
+    collapse below 4 vertices (a 2-cell-wide dash to its diagonal) is kept as traced."""
+    pts = np.asarray(contour).reshape(-1, 2)
+    if epsilon <= 0 or len(pts) <= 4:
+        return pts
+    on_edge = ((pts == 0) | (pts == TILE_CELLS - 1)).any(axis=1)
+    if not on_edge.any():
+        ring = cv2.approxPolyDP(pts.reshape(-1, 1, 2).astype(np.int32), epsilon, True)
+        ring = ring.reshape(-1, 2)
+    else:
+        ring = _simplified_between_edge_vertices(pts, on_edge, epsilon)
+    return pts if len(ring) < 4 else ring
+
+
+def _simplified_between_edge_vertices(pts, on_edge, epsilon) -> np.ndarray:
+    start = int(np.argmax(on_edge))
+    pts, on_edge = np.roll(pts, -start, axis=0), np.roll(on_edge, -start)
+    anchors = list(np.flatnonzero(on_edge)) + [len(pts)]  # the first anchor again, at the end
+    closed = np.concatenate([pts, pts[:1]]).astype(np.int32)
+    out = []
+    for a, b in zip(anchors[:-1], anchors[1:], strict=True):
+        chain = closed[a : b + 1]
+        if len(chain) > 2:
+            chain = cv2.approxPolyDP(chain.reshape(-1, 1, 2), epsilon, False).reshape(-1, 2)
+        out.append(chain[:-1])
+    return np.concatenate(out)
 
 
 def _class_plan(labels: np.ndarray, epsilon: float, min_area: float):

@@ -48,7 +48,7 @@ import cv2
 import numpy as np
 
 from common.classes import NUM_CLASSES, Cls
-from common.contours import varint_decode, varint_encode
+from common.contours import simplify_ring, varint_decode, varint_encode
 from common.errors import CodecError
 from common.grid import CELL_M, CELLS_PER_TILE, TILE_CELLS, tile_origin_m
 from common.messages import GridPatch, SparsePatch
@@ -176,24 +176,14 @@ def _trace(mask: np.ndarray, epsilon: float) -> list:
     for i, c in enumerate(contours):
         if hierarchy[i][3] != -1:
             continue
-        rings = [_simplify(c, epsilon)]
+        rings = [simplify_ring(c, epsilon).astype(np.int32)]
         j = hierarchy[i][2]
         while j != -1:
-            rings.append(_simplify(contours[j], epsilon))
+            rings.append(simplify_ring(contours[j], epsilon).astype(np.int32))
             j = hierarchy[j][0]
         comps.append((cv2.contourArea(c) + len(c), rings))
     comps.sort(key=lambda ar: -ar[0])
     return [rings for _, rings in comps]
-
-
-def _simplify(contour: np.ndarray, epsilon: float) -> np.ndarray:
-    """approxPolyDP, except where it would collapse a thin ring (then the ring as traced)."""
-    ring = contour
-    if epsilon > 0 and len(contour) > 4:
-        ring = cv2.approxPolyDP(contour, epsilon, True)
-        if len(ring) < 4:
-            ring = contour
-    return ring.reshape(-1, 2).astype(np.int32)
 
 
 def _key_poses(poses_xyyaw: np.ndarray, key_every: int) -> np.ndarray:
