@@ -71,7 +71,9 @@ def score_frames(t_ns: np.ndarray, est: np.ndarray, ok: np.ndarray, truth: np.nd
     """The drive's figures: error statistics and availability after convergence (as the
     demo's report counts them) over frames with markings in view and over all frames; the
     integrity violations over every frame (error > THRESHOLD_M while the car said ok); and
-    convergence counted from the first frame with a marking in view."""
+    convergence counted from the first frame with a marking in view. A drive that never
+    converges is scored over all its frames: left without figures, it dropped out of the
+    suite's medians and worst cases, the worst drive of all."""
     t_s = (np.asarray(t_ns, np.int64) - int(t_ns[0])) * 1e-9
     err = frame_errors(est, truth)
     pos = err["position_m"]
@@ -80,9 +82,9 @@ def score_frames(t_ns: np.ndarray, est: np.ndarray, ok: np.ndarray, truth: np.nd
     convergence = (None if k is None or first_view is None
                    else max(0.0, float(t_s[k] - t_s[first_view])))
     violations = ok & np.isfinite(pos) & (pos > THRESHOLD_M)
-    after = np.zeros(len(pos), bool)
+    after = np.ones(len(pos), bool)
     if k is not None:
-        after[k:] = True
+        after[:k] = False
     return {
         "markings_in_view": _over(err, in_view & after),
         "all_frames": _over(err, after),

@@ -51,6 +51,19 @@ def test_convergence_counts_from_the_first_marking_in_view():
     assert s["convergence_s"] == pytest.approx(3.0)
 
 
+def test_a_drive_that_never_converges_is_scored_over_all_its_frames():
+    n = 60
+    truth = _truth(n)
+    est = truth.copy()
+    est[:, 0] += np.where(np.arange(n) % 8 == 0, 0.1, 0.9)  # never 1 s below 0.5 m
+    s = score_frames(np.arange(n) * 100_000_000, est, np.zeros(n, bool), truth,
+                     np.ones(n, bool))
+    assert s["convergence_s"] is None
+    assert s["markings_in_view"]["frames"] == n
+    assert s["markings_in_view"]["availability_0_5m"] == pytest.approx(8 / 60)
+    assert s["markings_in_view"]["x_m"]["mean"] == pytest.approx((8 * 0.1 + 52 * 0.9) / 60)
+
+
 def test_the_summary_takes_distributions_over_drives_and_checks_the_goal():
     def entry(x, avail=1.0, conv=1.0, viol=0):
         stats = {k: {"mean": x, "p90": x, "max": x}
