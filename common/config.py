@@ -169,7 +169,10 @@ class LocalizerConfig:
     # a wheel's scale error is all but constant: a faster walk lets ICP's dash-periodic
     # along-road errors swing the scale, and the position saw-tooth with the dashes
     scale_walk_per_s: float = 3e-5  # random walk of that scale, 1/sqrt(s)
-    scale_sigma0: float = 0.03  # that scale's prior sigma at each (re)start of the filter
+    # that scale's prior sigma at each (re)start of the filter: wheel-speed odometry is good
+    # to 1-2 % (tyre wear, pressure, load); at 3 %, the first along-road fixes after a start
+    # off along the road were read as scale, which ran to its 5 % clamp
+    scale_sigma0: float = 0.015
     yaw_rate_sigma_dps: float = 0.3
     max_position_sigma_m: float = 1.0  # the filter trusts itself below this (re-init above)
     # integrity: a pose is reported ok only while its protection level (integrity_k x the

@@ -282,7 +282,7 @@ def test_road_surface_alone_is_not_matched_and_dead_reckoning_drops_ok(road_cach
     pts, cls = frame_points(road_cache, true, rng)
     road = cls == Cls.ROAD
     sigmas, oks = [], []
-    for k in range(60):  # 60 m at 10 m/s
+    for k in range(90):  # 90 m at 10 m/s: past the bound at a 1.5 % scale prior
         t = (k + 1) * 100_000_000
         loc.predict(t, 10.0, 0.0)
         est = loc.process_frame(t, pts[road], cls[road])
@@ -290,10 +290,10 @@ def test_road_surface_alone_is_not_matched_and_dead_reckoning_drops_ok(road_cach
         sigmas.append(loc.ekf.position_sigma_m)
         oks.append(est.ok)
     assert sigmas[-1] > max(sigmas[0], loc.ekf.max_position_sigma_m) and oks[0] and not oks[-1]
-    moved = true + [61.0, 0.0, 0.0]
+    moved = true + [91.0, 0.0, 0.0]
     pts, cls = frame_points(road_cache, moved, rng)
-    loc.predict(6_100_000_000, 10.0, 0.0)
-    est = loc.process_frame(6_100_000_000, pts, cls)
+    loc.predict(9_100_000_000, 10.0, 0.0)
+    est = loc.process_frame(9_100_000_000, pts, cls)
     assert not loc.ekf.initialized and not est.ok and est.diag["state"] != "tracking"
 
 
