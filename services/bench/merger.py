@@ -33,7 +33,7 @@ from common.classes import NUM_CLASSES
 from common.config import RoadmapConfig
 from common.grid import CELLS_PER_TILE, owner_of_tile
 from common.messages import GridPatch, IngestAck, IngestBatch
-from services.bench.runner import write_result
+from services.bench.runner import run_senders, write_result
 from services.merger.shard import MergerShard
 
 logger = logging.getLogger("bench.merger")
@@ -278,13 +278,7 @@ def _pipelined(session, work, window: int) -> None:
             except BaseException as exc:  # noqa: BLE001 - re-raised on the calling thread
                 failed.append(exc)
 
-    senders = [threading.Thread(target=sender, daemon=True) for _ in range(window)]
-    for t in senders:
-        t.start()
-    for t in senders:
-        t.join()
-    if failed:
-        raise failed[0]
+    run_senders(sender, window, failed)
 
 
 def _expect_ack(handler) -> None:

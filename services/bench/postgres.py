@@ -32,7 +32,7 @@ from common.config import RoadmapConfig
 from common.grid import REGION_TILES, region_of_tile
 from common.messages import IngestAck, IngestBatch, Stats
 from services.bench import merger as bench_merger
-from services.bench.runner import write_result
+from services.bench.runner import run_senders, write_result
 
 logger = logging.getLogger("bench.postgres")
 
@@ -155,13 +155,7 @@ def send_all(session, batches: list[IngestBatch], window: int, timeout_s: float 
                     resends[0] += 1
                 time.sleep(0.05)
 
-    threads = [threading.Thread(target=sender, daemon=True) for _ in range(window)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    if failed:
-        raise failed[0]
+    run_senders(sender, window, failed)
     return resends[0]
 
 

@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import traceback
 from pathlib import Path
@@ -25,6 +26,18 @@ logger = logging.getLogger("roadmap.bench")
 BENCHMARKS = ("render", "segmentation", "vehicle", "merger", "codec", "localizer", "upload",
               "postgres")
 SECTIONS = ("stages", "merge", "scaling", "mapper", "upload", "postgres")
+
+
+def run_senders(sender, window: int, failed: list) -> None:
+    """`sender` on `window` threads at once (each one request in flight, as a fleet's
+    outboxes), all joined; the first failure a sender recorded in `failed` is raised here."""
+    threads = [threading.Thread(target=sender, daemon=True) for _ in range(window)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    if failed:
+        raise failed[0]
 
 
 def write_result(out_dir, name: str, result: dict, shown=None) -> Path:
