@@ -291,19 +291,13 @@ def _traced(mask, epsilon: float, min_area: float, offset=(0, 0)):
         area = cv2.contourArea(c) + len(c)  # pixel area ~ polygon area + half the border
         if area < min_area:
             continue
-        rings = [_simplify(c, epsilon)]
+        rings = [simplify_ring(c, epsilon).astype(np.int64)]
         j = hierarchy[i][2]
         while j != -1:
-            rings.append(_simplify(contours[j], epsilon))
+            rings.append(simplify_ring(contours[j], epsilon).astype(np.int64))
             j = hierarchy[j][0]
         comps.append((area, rings))
     return comps
-
-
-def _simplify(contour: np.ndarray, epsilon: float) -> np.ndarray:
-    """approxPolyDP, except where it would collapse a thin ring to a line (a 2-cell-wide dash
-    becomes its diagonal): then the unsimplified ring is kept."""
-    return simplify_ring(contour, epsilon).astype(np.int64)
 
 
 def simplify_ring(contour: np.ndarray, epsilon: float) -> np.ndarray:
