@@ -173,6 +173,14 @@ class LocalizerConfig:
     # to 1-2 % (tyre wear, pressure, load); at 3 %, the first along-road fixes after a start
     # off along the road were read as scale, which ran to its 5 % clamp
     scale_sigma0: float = 0.015
+    # ... and, if frozen at the start, it learns nothing from the matches after a (re)start
+    # until the first ok pose, reacquire_settle_frames accepted matches, or a match that pins
+    # the along-road position to within scale_thaw_fix_sigma_m: a start metres off along the
+    # road is pulled back by its first fixes, which the filter reads as scale. Off: it cut the
+    # suite's worst drives but broke integrity on a held-out one (docs/RESULTS.md, "The scale
+    # frozen at the start")
+    scale_frozen_at_start: bool = False
+    scale_thaw_fix_sigma_m: float = 0.05
     yaw_rate_sigma_dps: float = 0.3
     max_position_sigma_m: float = 1.0  # the filter trusts itself below this (re-init above)
     # integrity: a pose is reported ok only while its protection level (integrity_k x the
@@ -196,6 +204,12 @@ class LocalizerConfig:
     # ... and without any match (no markings in view), by this share: the odometry's heading
     # and scale errors the filter does not model (a 0.3 deg yaw error is 0.5 % across)
     dead_reckoning_drift_per_m: float = 0.005
+    # ... and by the odometry scale's sigma times the distance driven since the last match
+    # that pinned the along-road position to within this sigma: lane-line matches with weak
+    # along-road information, summed frame after frame as if independent, shrink the filter's
+    # sigma while an unlearnt scale error walks the position along the road (0: off; 0.2 m
+    # with the frozen scale above, which needs it)
+    along_fix_sigma_m: float = 0.0
     init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
     init_travel_m: float = 12.0  # metres of frames gathered before the coarse search
     init_frames: int = 30

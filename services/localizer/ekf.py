@@ -10,7 +10,13 @@ Predict from wheel speed (m/s, times the estimated scale) and gyro yaw rate (rad
 with an ICP pose (its 3x3
 covariance) or a consumer GNSS position. Every update is gated by the Mahalanobis distance of its
 innovation (chi-square); angle residuals are wrapped. `ok` is the integrity flag: False when the
-position uncertainty grows past a bound or too many updates in a row were rejected."""
+position uncertainty grows past a bound or too many updates in a row were rejected.
+
+With `freeze_scale_on_reset` the odometry scale is frozen at each reset: measurements move
+the pose (and the other states) but not the scale until it thaws: when the caller says so
+(`scale_frozen = False`, the Localizer at its first trusted pose) or a match pins the
+along-road position to within `scale_thaw_sigma_m` (`along_road_fixed`). A frozen scale keeps
+its variance, and the position the uncertainty that variance adds as the car drives."""
 
 import math
 
@@ -75,6 +81,8 @@ class PoseFilter:
         gyro_bias_sigma0_rps: float = math.radians(0.1),
         gyro_bias_walk_rps: float = math.radians(0.002),
         camera_yaw_sigma0_rad: float = math.radians(0.3),
+        freeze_scale_on_reset: bool = LocalizerConfig.scale_frozen_at_start,
+        scale_thaw_sigma_m: float = LocalizerConfig.scale_thaw_fix_sigma_m,
         inflate_after: int = 3,
         inflate_m: float = 0.15,
         inflate_yaw_rad: float = math.radians(0.3),
@@ -101,6 +109,9 @@ class PoseFilter:
         self.initialized = False
         self.rejections = 0
         self.last_nis = 0.0
+        self.freeze_scale_on_reset, self.scale_thaw_sigma_m = (freeze_scale_on_reset,
+                                                               scale_thaw_sigma_m)
+        self.scale_frozen = False
 
     # -- state ------------------------------------------------------------------------------
 
@@ -116,6 +127,7 @@ class PoseFilter:
         self.ekf.P[5, 5] = self.camera_yaw_sigma0**2
         self.initialized = True
         self.rejections = 0
+        self.scale_frozen = self.freeze_scale_on_reset
 
     @property
     def pose(self) -> np.ndarray:
@@ -138,6 +150,10 @@ class PoseFilter:
     @property
     def odometry_scale(self) -> float:
         return float(self.ekf.x[3, 0])
+
+    @property
+    def scale_sigma(self) -> float:
+        return float(math.sqrt(max(self.ekf.P[3, 3], 0.0)))
 
     @property
     def gyro_bias_rps(self) -> float:
@@ -210,6 +226,7 @@ class PoseFilter:
         pose relative to the prediction's covariance."""
         if not self.initialized:
             return False
+        self._decouple_frozen_scale()
         P = self.ekf.P
         Ppp = P[:3, :3]
         shift = _pose_residual(pose, self.ekf.x.reshape(-1)[:3])
@@ -271,9 +288,24 @@ class PoseFilter:
         self.gnss_rejections = 0
         return True
 
+    def along_road_fixed(self, sigma_m: float) -> None:
+        """An accepted match alone knew the along-road position to within sigma_m."""
+        if sigma_m <= self.scale_thaw_sigma_m:
+            self.scale_frozen = False
+
+    def _decouple_frozen_scale(self) -> None:
+        """A frozen scale learns nothing from the next measurement: its correlation with the
+        rest of the state (what the motion since the last measurement built) is dropped, its
+        variance kept."""
+        if self.scale_frozen:
+            P = self.ekf.P
+            P[3, :3] = P[:3, 3] = 0.0
+            P[3, 4:] = P[4:, 3] = 0.0
+
     def _update(self, z, H, R) -> bool:
         if not self.initialized:
             return False
+        self._decouple_frozen_scale()
         _, _, d2 = self.innovation(z, H, R)
         self.last_nis = d2
         pose = len(z) == 3

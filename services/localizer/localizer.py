@@ -71,6 +71,7 @@ class Localizer:
         hold_drift_per_m: float = LocalizerConfig.hold_drift_per_m,
         dead_reckoning_drift_per_m: float = LocalizerConfig.dead_reckoning_drift_per_m,
         lost_after_frames: int = 10,
+        along_fix_sigma_m: float = LocalizerConfig.along_fix_sigma_m,
         seed: int = 0,
     ):
         self.cache, self.icp, self.ekf, self.search = cache, icp, ekf, search
@@ -83,16 +84,15 @@ class Localizer:
         self.recent_frames, self.recent_points = recent_frames, recent_points
         self.track_gate_m, self.init_min_marking_points = track_gate_m, init_min_marking_points
         # camera attitude (pitch, roll) offset from the ICP attitude: constant, vibration averages
-        self.calibration = np.zeros(2)
-        self.calibration_rate, self.reinit_gnss_rejections = (calibration_rate,
-                                                              reinit_gnss_rejections)
+        self.calibration, self.calibration_rate = np.zeros(2), calibration_rate
+        self.reinit_gnss_rejections = reinit_gnss_rejections
         self.hold_m, self.hold_below_m = hold_m, hold_below_m
         self.rival_travel_m, self.rival_points = rival_travel_m, rival_points
         self.alert_limit_m, self.integrity_k = alert_limit_m, integrity_k
         self.settle_frames, self.reacquire_settle_frames = settle_frames, reacquire_settle_frames
         self.min_marking_points, self.lost_after_frames = min_marking_points, lost_after_frames
-        self.hold_drift_per_m, self.dead_reckoning_drift_per_m = (hold_drift_per_m,
-                                                                  dead_reckoning_drift_per_m)
+        self.hold_drift_per_m, self.dead_reckoning_drift_per_m, self.along_fix_sigma_m = (
+            hold_drift_per_m, dead_reckoning_drift_per_m, along_fix_sigma_m)
         self._start(seed)
 
     def _start(self, seed: int) -> None:
@@ -117,6 +117,7 @@ class Localizer:
         # whether the hold has kept it since (Localizer._held, integrity_sigma_m)
         self.fix_travel_m = 0.0
         self.holding = False
+        self.sure_fix_travel_m = 0.0  # ... and at the last match that pinned it (along_fix_sigma_m)
         self.unmatched_frames = 0  # frames since the last accepted match
         self.match_travel_m = 0.0  # the travel then
         # the matches' position corrections of the last second (xy, m): a filter still being
@@ -201,6 +202,8 @@ class Localizer:
         integrity_sigma_m = self.integrity_sigma_m
         ok = (self.ekf.ok and not self.rivals
               and self.integrity_k * integrity_sigma_m <= self.alert_limit_m)
+        if ok:  # a trusted pose: what the matches pull from here on may be the scale's doing
+            self.ekf.scale_frozen = False
         diag["integrity_sigma_m"] = round(integrity_sigma_m, 4)
         return Estimate(t_ns, self.ekf.vehicle_pose, self.ekf.cov, ok, diag)
 
@@ -223,7 +226,17 @@ class Localizer:
             self.match_travel_m = self.travel_m
         if accepted and not result.degenerate:  # the along-road position observed
             self.fix_travel_m, self.holding = self.travel_m, False
+            along_m = self._along_road_sigma_m(result.information)
+            if along_m <= self.along_fix_sigma_m:
+                self.sure_fix_travel_m = self.travel_m
+            self.ekf.along_road_fixed(along_m)
         return accepted
+
+    def _along_road_sigma_m(self, information: np.ndarray) -> float:
+        """The sigma a match's information alone gives the position along the car's heading."""
+        yaw = self.ekf.pose[2]
+        u = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+        return 1.0 / math.sqrt(max(float(u @ information @ u), 1e-12))
 
     def _lost(self) -> bool:
         """Past the filter's own bound after a run of frames without a match (not a fresh start
@@ -234,10 +247,14 @@ class Localizer:
     def integrity_sigma_m(self) -> float:
         """The position sigma the integrity flag trusts: the filter's, widened by what the
         odometry alone knows since the last match (and, while the hold keeps the along-road
-        position, since that position was last seen): drift the filter does not model."""
+        position, since that position was last seen), and by the scale's sigma over the travel
+        since a match last pinned the along-road position: drift the filter does not model."""
         held = self.hold_drift_per_m * (self.travel_m - self.fix_travel_m) if self.holding else 0
         unmatched = self.dead_reckoning_drift_per_m * (self.travel_m - self.match_travel_m)
-        return math.hypot(self.ekf.position_sigma_m, held, unmatched, self._pulled_m())
+        scaled = 0.0
+        if self.along_fix_sigma_m > 0:
+            scaled = self.ekf.scale_sigma * (self.travel_m - self.sure_fix_travel_m)
+        return math.hypot(self.ekf.position_sigma_m, held, unmatched, self._pulled_m(), scaled)
 
     def _pulled_m(self) -> float:
         """How far the matches moved the filter lately: over the last `settle_frames`, and,
@@ -409,7 +426,7 @@ class Localizer:
         self.ekf.reset(res.pose, cov, scale)
         self.bad_frames = self.waiting_frames = self.unmatched_frames = 0
         self.fix_travel_m, self.holding = self.travel_m, False
-        self.match_travel_m = self.travel_m
+        self.match_travel_m = self.sure_fix_travel_m = self.travel_m
         self.corrections.clear()
         self.settled_matches, self.pull_since_gap = 0, np.zeros(2)
         self.inits += 1
@@ -551,6 +568,8 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         scale_sigma0=lc.scale_sigma0,
         yaw_rate_sigma_rps=math.radians(lc.yaw_rate_sigma_dps),
         max_position_sigma_m=lc.max_position_sigma_m,
+        freeze_scale_on_reset=lc.scale_frozen_at_start,
+        scale_thaw_sigma_m=lc.scale_thaw_fix_sigma_m,
     )
     search = CoarseSearch(radius_m=lc.init_radius_m, seed=seed)
     return Localizer(
@@ -576,6 +595,7 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         init_min_marking_points=lc.init_min_marking_points,
         hold_drift_per_m=lc.hold_drift_per_m,
         dead_reckoning_drift_per_m=lc.dead_reckoning_drift_per_m,
+        along_fix_sigma_m=lc.along_fix_sigma_m,
         seed=seed,
     )
 

@@ -168,16 +168,19 @@ def test_ekf_learns_the_camera_yaw_offset(rng):
     assert np.hypot(*(f.vehicle_pose[:2] - true[:2])) < 0.05
 
 
-def test_an_ambiguous_start_keeps_its_rivals_until_the_map_tells_them_apart(rng):
+@pytest.mark.parametrize("frozen", [False, True])
+def test_an_ambiguous_start_keeps_its_rivals_until_the_map_tells_them_apart(rng, frozen):
     """Solid lines only at the start: the along-road position is ambiguous; the filter starts on
     the best candidate, keeps the others as rivals (its pose not ok meanwhile) and drops them
     when the stop line comes into view; ok once its matches have settled, and at the end, just
     past the next stop line (between them, on solid lines, the along-road hold's drift widens
-    the sigma of the ok flag)."""
+    the sigma of the ok flag). With the scale frozen at the start (never ok while the rivals
+    last), the stop line's match thaws it: the car's 1 % scale error is learnt all the same."""
     cache = fill_cache(TileCache(capacity=30), straight_road(dashed=False))
     streams = synthetic_drive(rng, duration_s=13.0, start=(30.0, 28.25, 0.0),
                               gnss_bias_m=(3.0, -1.0), weave_m=0.0)
-    loc = get_localizer(LocalizerConfig(), cache)
+    loc = get_localizer(LocalizerConfig(scale_frozen_at_start=frozen,
+                                        along_fix_sigma_m=0.2 if frozen else 0.0), cache)
     frames = [frame_points(cache, p, rng) for p in streams["frame_pose_true"]]
     seen = {"rivals": 0, "ok_with_rivals": False}
 
@@ -322,3 +325,68 @@ def test_a_start_without_markings_waits_for_them(rng):
     est = replay(loc, streams, road_only)
     assert loc.inits == 0 and not any(e.ok for e in est)
     assert "waiting_markings" in {e.diag.get("state") for e in est}
+
+
+def test_a_frozen_scale_learns_nothing_from_a_start_pulled_back_along_the_road():
+    """A start 1 m off along the road, pulled back by a match after 20 m of driving: with the
+    scale frozen (from reset until thawed), the pose takes the whole correction and the scale
+    none; thawed, the same correction moves the scale too."""
+
+    def pulled(freeze):
+        f = PoseFilter(freeze_scale_on_reset=freeze)
+        f.reset(np.array([1.0, 0.0, 0.0]), np.diag([0.5**2, 0.05**2, 1e-5]))
+        for _ in range(20):
+            f.predict(10.0, 0.0, 0.1)
+        assert f.update_posterior(np.array([20.0, 0.0, 0.0]), np.diag([1e4, 1e4, 1e6]))
+        return f
+
+    frozen, learning = pulled(True), pulled(False)
+    assert frozen.scale_frozen and not learning.scale_frozen
+    assert frozen.odometry_scale == 1.0 and abs(frozen.pose[0] - 20.0) < 1e-9
+    assert learning.odometry_scale < 0.99  # the 1 m read partly as a short wheel
+    assert frozen.scale_sigma == pytest.approx(LocalizerConfig.scale_sigma0, rel=1e-3)
+    frozen.scale_frozen = False  # thawed (an ok pose): from here on, corrections move the scale
+    for _ in range(20):
+        frozen.predict(10.0, 0.0, 0.1)
+    assert frozen.update_posterior(np.array([39.0, 0.0, 0.0]), np.diag([1e4, 1e4, 1e6]))
+    assert frozen.odometry_scale < 0.999
+
+
+def test_a_frozen_scale_thaws_at_a_match_that_pins_the_along_road_position():
+    f = PoseFilter(freeze_scale_on_reset=True, scale_thaw_sigma_m=0.05)
+    f.reset(np.zeros(3), np.diag([0.3**2, 0.05**2, 1e-5]))
+    f.along_road_fixed(0.2)  # lane lines and a far stop line: still frozen
+    assert f.scale_frozen
+    f.along_road_fixed(0.04)  # a stop line close ahead
+    assert not f.scale_frozen
+    f.reset(np.zeros(3), np.diag([0.3**2, 0.05**2, 1e-5]))  # every (re)start freezes it again
+    assert f.scale_frozen
+
+
+def test_integrity_counts_the_scale_over_the_travel_since_the_along_road_position_was_pinned(
+        road_cache):
+    """Matches with weak along-road information (sigma 0.45 m each) keep the filter's sigma
+    small as they add up, while an unlearnt scale error walks the pose along the road: the
+    integrity sigma grows by the scale's sigma per metre driven since the last sure fix (not
+    without along_fix_sigma_m), and a sure fix resets it."""
+    from services.localizer.icp import IcpResult
+
+    def match(loc, along_sigma_m):
+        info = np.diag([1 / along_sigma_m**2, 1e4, 1e6])
+        return IcpResult(loc.ekf.pose, np.linalg.inv(info), 500, 500, 0.02, False,
+                         np.array([1.0, 0.0, 0.0]), np.zeros(3), 5, information=info)
+
+    def weakly_matched(along_fix_sigma_m):
+        loc = get_localizer(LocalizerConfig(along_fix_sigma_m=along_fix_sigma_m), road_cache)
+        loc.ekf.reset(np.array([0.0, 28.25, 0.0]), np.diag([0.05**2, 0.05**2, 1e-6]))
+        for _ in range(30):  # 30 m of weak matches
+            loc.travel_m += 1.0
+            assert loc._fuse(match(loc, 0.45))
+        return loc
+
+    loc, off = weakly_matched(0.2), weakly_matched(0.0)
+    grown = loc.integrity_sigma_m
+    assert grown >= 30 * loc.ekf.scale_sigma > 3 * loc.ekf.position_sigma_m
+    assert off.integrity_sigma_m < 0.5 * grown
+    assert loc._fuse(match(loc, 0.1))  # a stop line: the along-road position is pinned
+    assert loc.integrity_sigma_m < 0.5 * grown
