@@ -174,11 +174,10 @@ class LocalizerConfig:
     # off along the road were read as scale, which ran to its 5 % clamp
     scale_sigma0: float = 0.015
     # ... and, if frozen at the start, it learns nothing from the matches after a (re)start
-    # until the first ok pose, reacquire_settle_frames accepted matches, or a match that pins
-    # the along-road position to within scale_thaw_fix_sigma_m: a start metres off along the
-    # road is pulled back by its first fixes, which the filter reads as scale. Off: it cut the
-    # suite's worst drives but broke integrity on a held-out one (docs/RESULTS.md, "The scale
-    # frozen at the start")
+    # until the first ok pose or a match that pins the along-road position to within
+    # scale_thaw_fix_sigma_m: a start metres off along the road is pulled back by its first
+    # fixes, which the filter reads as scale. Off: it cut the suite's worst drives but broke
+    # integrity on a held-out one (docs/RESULTS.md, "The scale frozen at the start")
     scale_frozen_at_start: bool = False
     scale_thaw_fix_sigma_m: float = 0.05
     yaw_rate_sigma_dps: float = 0.3
