@@ -165,6 +165,11 @@ class LocalizerConfig:
     ipm_sigma_px: float = 1.0  # label noise of the IPM points, pixels (0: off; IpmNoise)
     icp_cov_scale: float = 60.0  # single-frame ICP is over-confident (correlated points, vibration)
     gnss_inflate: float = 1.5  # consumer GNSS has a slowly varying bias: trust it less
+    # the GNSS as integrity monitor: a mean residual (fix minus pose) over the last
+    # gnss_check_fixes fixes beyond gnss_alert_sigmas x their reported sigma restarts the
+    # filter (a lock onto a parallel road 10 m over; services/localizer/gnss_check.py; 0: off)
+    gnss_check_fixes: int = 25
+    gnss_alert_sigmas: float = 3.0
     speed_sigma_rel: float = 0.005  # the odometry scale itself is estimated
     # a wheel's scale error is all but constant: a faster walk lets ICP's dash-periodic
     # along-road errors swing the scale, and the position saw-tooth with the dashes
@@ -173,13 +178,14 @@ class LocalizerConfig:
     # to 1-2 % (tyre wear, pressure, load); at 3 %, the first along-road fixes after a start
     # off along the road were read as scale, which ran to its 5 % clamp
     scale_sigma0: float = 0.015
-    # ... and, if frozen at the start, it learns nothing from the matches after a (re)start
-    # until the first ok pose or a match that pins the along-road position to within
+    # ... and, frozen at the start, it learns nothing from the matches after a (re)start until
+    # the first ok pose or a match that pins the along-road position to within
     # scale_thaw_fix_sigma_m: a start metres off along the road is pulled back by its first
-    # fixes, which the filter reads as scale. Off: it cut the suite's worst drives but broke
-    # integrity on a held-out one (docs/RESULTS.md, "The scale frozen at the start")
-    scale_frozen_at_start: bool = False
-    scale_thaw_fix_sigma_m: float = 0.05
+    # fixes, which a learning filter reads as scale (docs/RESULTS.md, "The scale frozen at the
+    # start"); 0.05 m kept it frozen through a whole drive with few stop lines and broke
+    # integrity there
+    scale_frozen_at_start: bool = True
+    scale_thaw_fix_sigma_m: float = 0.1
     yaw_rate_sigma_dps: float = 0.3
     max_position_sigma_m: float = 1.0  # the filter trusts itself below this (re-init above)
     # integrity: a pose is reported ok only while its protection level (integrity_k x the
@@ -206,9 +212,9 @@ class LocalizerConfig:
     # ... and by the odometry scale's sigma times the distance driven since the last match
     # that pinned the along-road position to within this sigma: lane-line matches with weak
     # along-road information, summed frame after frame as if independent, shrink the filter's
-    # sigma while an unlearnt scale error walks the position along the road (0: off; 0.2 m
-    # with the frozen scale above, which needs it)
-    along_fix_sigma_m: float = 0.0
+    # sigma while an unlearnt scale error walks the position along the road (0: off; the
+    # frozen scale above needs it)
+    along_fix_sigma_m: float = 0.2
     init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
     init_travel_m: float = 12.0  # metres of frames gathered before the coarse search
     init_frames: int = 30

@@ -15,6 +15,7 @@ from common.classes import Cls
 from common.config import LocalizerConfig
 from common.geometry import se2_between, se2_compose, transform_points_2d
 from services.localizer.ekf import PoseFilter
+from services.localizer.gnss_check import GnssCheck
 from services.localizer.icp import Icp, IcpResult, IpmNoise
 from services.localizer.init import CoarseSearch, distinct, far_apart, fine_overlap
 from services.localizer.map_cache import TileCache, class_slots
@@ -22,6 +23,7 @@ from services.localizer.map_cache import TileCache, class_slots
 logger = logging.getLogger(__name__)
 
 RIVAL_SEP_RAD = math.radians(3)  # rival poses: more than 1 m or this far from each other
+LOST_AFTER_FRAMES = 10  # unmatched frames past the filter's bound before it counts as lost
 
 
 @dataclass
@@ -70,7 +72,7 @@ class Localizer:
         init_min_marking_points: int = LocalizerConfig.init_min_marking_points,
         hold_drift_per_m: float = LocalizerConfig.hold_drift_per_m,
         dead_reckoning_drift_per_m: float = LocalizerConfig.dead_reckoning_drift_per_m,
-        lost_after_frames: int = 10,
+        gnss_check: GnssCheck | None = None,
         along_fix_sigma_m: float = LocalizerConfig.along_fix_sigma_m,
         seed: int = 0,
     ):
@@ -90,7 +92,7 @@ class Localizer:
         self.rival_travel_m, self.rival_points = rival_travel_m, rival_points
         self.alert_limit_m, self.integrity_k = alert_limit_m, integrity_k
         self.settle_frames, self.reacquire_settle_frames = settle_frames, reacquire_settle_frames
-        self.min_marking_points, self.lost_after_frames = min_marking_points, lost_after_frames
+        self.min_marking_points, self.gnss_check = min_marking_points, gnss_check or GnssCheck()
         self.hold_drift_per_m, self.dead_reckoning_drift_per_m, self.along_fix_sigma_m = (
             hold_drift_per_m, dead_reckoning_drift_per_m, along_fix_sigma_m)
         self._start(seed)
@@ -145,10 +147,13 @@ class Localizer:
         self.gnss.append((self.odom.copy(), np.asarray(xy_m, float), sigma))
         if not self.ekf.initialized:
             return False
+        self.gnss_check.add(xy_m, self.ekf.pose[:2], max(float(sigma_m), self.gnss_min_sigma_m))
         # the receiver's error is a slowly varying bias: its fixes do not average below it
         accepted = self.ekf.update_position(xy_m, sigma, min_sigma_m=sigma)
         if self.ekf.gnss_rejections >= self.reinit_gnss_rejections:
             self._reinitialize("GNSS keeps disagreeing")
+        elif self.gnss_check.disagrees:
+            self._reinitialize(f"GNSS {self.gnss_check.mean_residual_m:.1f} m away on average")
         return accepted
 
     def process_frame(
@@ -200,10 +205,12 @@ class Localizer:
         # an unresolved ambiguity is not a trusted pose, nor one whose protection level
         # exceeds the alert limit
         integrity_sigma_m = self.integrity_sigma_m
-        ok = (self.ekf.ok and not self.rivals
-              and self.integrity_k * integrity_sigma_m <= self.alert_limit_m)
-        if ok:  # a trusted pose: what the matches pull from here on may be the scale's doing
+        trusted = (self.ekf.ok and not self.rivals
+                   and self.integrity_k * integrity_sigma_m <= self.alert_limit_m)
+        if trusted:  # what the matches pull from here on may be the scale's doing
             self.ekf.scale_frozen = False
+        # ... nor, for the ok flag, one the GNSS has not yet checked since the (re)start
+        ok = trusted and self.gnss_check.heard
         diag["integrity_sigma_m"] = round(integrity_sigma_m, 4)
         return Estimate(t_ns, self.ekf.vehicle_pose, self.ekf.cov, ok, diag)
 
@@ -241,7 +248,7 @@ class Localizer:
     def _lost(self) -> bool:
         """Past the filter's own bound after a run of frames without a match (not a fresh start
         whose along-road sigma the next frames narrow)."""
-        return not self.ekf.ok and self.unmatched_frames >= self.lost_after_frames
+        return not self.ekf.ok and self.unmatched_frames >= LOST_AFTER_FRAMES
 
     @property
     def integrity_sigma_m(self) -> float:
@@ -428,6 +435,7 @@ class Localizer:
         self.fix_travel_m, self.holding = self.travel_m, False
         self.match_travel_m = self.sure_fix_travel_m = self.travel_m
         self.corrections.clear()
+        self.gnss_check.reset()
         self.settled_matches, self.pull_since_gap = 0, np.zeros(2)
         self.inits += 1
         logger.info("initialized at %s (init #%d)", np.round(res.pose, 2), self.inits)
@@ -596,6 +604,7 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         hold_drift_per_m=lc.hold_drift_per_m,
         dead_reckoning_drift_per_m=lc.dead_reckoning_drift_per_m,
         along_fix_sigma_m=lc.along_fix_sigma_m,
+        gnss_check=GnssCheck(lc.gnss_check_fixes, lc.gnss_alert_sigmas),
         seed=seed,
     )
 

@@ -105,10 +105,12 @@ def synthetic_drive(
     gyro_bias_rps=0.000873,  # 0.05 deg/s
     gnss_bias_m=(2.0, -1.5),
     gnss_sigma_m=1.5,
+    gnss_reported_sigma_m=None,
     weave_m=0.6,
 ):
     """A production drive along the straight road with a gentle lane weave: dict of streams
-    (times in ns) as in a drive log, with the true pose at frames."""
+    (times in ns) as in a drive log, with the true pose at frames. The receiver reports
+    gnss_reported_sigma_m (default: its white noise's sigma) whatever its bias."""
     dt = 1.0 / imu_hz
     n = int(duration_s * imu_hz)
     t = np.arange(n) * dt
@@ -133,7 +135,7 @@ def synthetic_drive(
         "imu_yaw_rate_rps": yaw_rate + gyro_bias_rps + rng.normal(0, 0.002, n),
         "gnss_t_ns": t_ns[gidx],
         "gnss_xy_m": truth[gidx, :2] + bias + rng.normal(0, gnss_sigma_m, (len(gidx), 2)),
-        "gnss_sigma_m": np.full(len(gidx), gnss_sigma_m),
+        "gnss_sigma_m": np.full(len(gidx), gnss_reported_sigma_m or gnss_sigma_m),
         "gnss_ok": np.ones(len(gidx), bool),
         "truth_t_ns": t_ns,
         "truth_pose": truth,

@@ -105,7 +105,8 @@ def test_coarse_search_finds_pose_from_5m_off(road_cache, rng):
 
 
 def test_whole_drive_converges_and_stays_available(road_cache, rng):
-    streams = synthetic_drive(rng, duration_s=12.0, gnss_bias_m=(3.0, -3.5))
+    streams = synthetic_drive(rng, duration_s=12.0, gnss_bias_m=(3.0, -3.5),
+                             gnss_reported_sigma_m=2.5)
     loc = get_localizer(LocalizerConfig(), road_cache)
     frames = [frame_points(road_cache, p, rng) for p in streams["frame_pose_true"]]
     est = replay(loc, streams, lambda i: frames[i])
@@ -261,13 +262,17 @@ def test_ipm_noise_weighs_far_residuals_along_the_ray_less():
 
 def test_a_pose_whose_protection_level_exceeds_the_alert_limit_is_not_ok(road_cache, rng):
     """integrity: ok only while integrity_k x the position sigma lies within the alert limit;
-    the same drive with a looser limit reports the very same poses as ok."""
-    streams = synthetic_drive(rng, duration_s=12.0, gnss_bias_m=(3.0, -3.5))
+    the same drive with a looser limit reports the very same poses as ok (with the scale
+    learnt from the start: a frozen scale thaws at the first ok pose, which the limit moves)."""
+    streams = synthetic_drive(rng, duration_s=12.0, gnss_bias_m=(3.0, -3.5),
+                             gnss_reported_sigma_m=2.5)
     frames = [frame_points(road_cache, p, rng) for p in streams["frame_pose_true"]]
-    strict = replay(get_localizer(LocalizerConfig(alert_limit_m=0.05), road_cache), streams,
-                    lambda i: frames[i])
-    loose = replay(get_localizer(LocalizerConfig(alert_limit_m=100.0), road_cache), streams,
-                   lambda i: frames[i])
+
+    def run(alert_limit_m):
+        lc = LocalizerConfig(alert_limit_m=alert_limit_m, scale_frozen_at_start=False)
+        return replay(get_localizer(lc, road_cache), streams, lambda i: frames[i])
+
+    strict, loose = run(0.05), run(100.0)
     sigma = [math.sqrt(np.linalg.eigvalsh(e.cov[:2, :2])[-1]) for e in strict]
     assert any(e.ok for e in loose) and not any(
         e.ok for e, s in zip(strict, sigma, strict=True) if 3.0 * s > 0.05)
@@ -278,8 +283,9 @@ def test_road_surface_alone_is_not_matched_and_dead_reckoning_drops_ok(road_cach
     """A frame of road points only (no marking) leaves the filter to odometry: no match, its
     sigma grows, and the integrity flag falls once the dead-reckoned distance's drift exceeds
     the alert limit; when markings come back past the filter's bound, it has lost track and
-    goes back to the multi-frame search."""
-    loc = get_localizer(LocalizerConfig(), road_cache)
+    goes back to the multi-frame search. (No GNSS here: its check is off, or no pose would
+    be ok before it had heard half a window of fixes.)"""
+    loc = get_localizer(LocalizerConfig(gnss_alert_sigmas=0.0), road_cache)
     true = np.array([62.0, 28.25, 0.0])
     loc.ekf.reset(true, np.diag([0.01**2, 0.01**2, 1e-6]))
     pts, cls = frame_points(road_cache, true, rng)
