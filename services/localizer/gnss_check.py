@@ -51,5 +51,5 @@ class GnssCheck:
         reported sigma."""
         if self.alert_sigmas <= 0 or not self.heard:
             return False
-        sigma = float(np.mean([s for _, _, s in self.residuals]))
+        sigma = float(np.asarray(self.residuals)[:, 2].mean())
         return self.mean_residual_m > self.alert_sigmas * sigma

@@ -143,11 +143,12 @@ class Localizer:
 
     def correct_gnss(self, t_ns: int, xy_m: np.ndarray, sigma_m: float) -> bool:
         """A consumer GNSS fix; used for initialization, then as a loose position measurement."""
-        sigma = max(float(sigma_m), self.gnss_min_sigma_m) * self.gnss_inflate
+        reported = max(float(sigma_m), self.gnss_min_sigma_m)
+        sigma = reported * self.gnss_inflate
         self.gnss.append((self.odom.copy(), np.asarray(xy_m, float), sigma))
         if not self.ekf.initialized:
             return False
-        self.gnss_check.add(xy_m, self.ekf.pose[:2], max(float(sigma_m), self.gnss_min_sigma_m))
+        self.gnss_check.add(xy_m, self.ekf.pose[:2], reported)
         # the receiver's error is a slowly varying bias: its fixes do not average below it
         accepted = self.ekf.update_position(xy_m, sigma, min_sigma_m=sigma)
         if self.ekf.gnss_rejections >= self.reinit_gnss_rejections:
