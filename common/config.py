@@ -275,6 +275,9 @@ class MergerConfig:
     window_traversals: int = 3  # ballots of the newest observing traversals per cell (repaint in 2)
     footprint_cells: int = 9  # a traversal's unvoted cells inside its closed footprint vote none
     min_votes: int = 2  # votes behind a label, else unknown
+    # a ground-sign blob (gaps up to 0.3 m joined) of fewer cells is decided again without its
+    # sign ballots: a painted sign (an arrow, a bicycle) covers 1-1.5 m^2 (100-150 cells)
+    min_sign_cells: int = 30
     # a traversal out of every cell's window is dropped from memory once it is this much older
     # than the tile's window-th newest traversal (services/merger/shard.py; < 0: never)
     retire_after_s: float = 3600.0

@@ -29,6 +29,12 @@ Evidence rule (DESIGN.md: Map updating), per cell:
      in a traversal's votes (a car in front, sparse far pixels) is no evidence against road.
      A label needs its ballots to carry at least merger.min_votes (2) votes, else the cell is
      unknown (0).
+  4. A ground-sign blob too small to be a sign (fewer than merger.min_sign_cells (30) cells,
+     parts up to SIGN_GAP_CELLS (0.3 m) apart joined; a painted arrow covers 100-150) is decided
+     again by rule 3 with its sign ballots left out: the lane line a model half mistook for a
+     sign, else unknown. A blob that touches the tile's edge is kept, as it may be part of a
+     sign in the next tile: the rule stays a function of the tile's own ballots. This departs
+     from DESIGN.md's "the class with the most evidence" (docs/ARCHITECTURE.md).
 Consequences: after any number (50) of traversals of the old paint, new paint (or its removal:
 road, other paint or nothing) wins as soon as 2 of the last 3 traversals that saw the cell saw
 it: the map follows within 2 traversals that pass the cell, within 3 when one of them misses
@@ -58,7 +64,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from common.classes import NUM_CLASSES
+from common.classes import NUM_CLASSES, Cls
 from common.config import MergerConfig
 from common.contours import CODEC, encode_tile
 from common.errors import ConfigError, TileError
@@ -177,6 +183,7 @@ class MergerShard:
             window_traversals=merger_cfg.window_traversals,
             min_votes=merger_cfg.min_votes,
             footprint_cells=merger_cfg.footprint_cells,
+            min_sign_cells=merger_cfg.min_sign_cells,
             retire_after_s=merger_cfg.retire_after_s,
             max_batch_patches=merger_cfg.max_batch_patches,
             max_batch_cells=merger_cfg.max_batch_cells,
@@ -189,6 +196,7 @@ class MergerShard:
         window_traversals: int = MergerConfig.window_traversals,
         min_votes: int = MergerConfig.min_votes,
         footprint_cells: int = MergerConfig.footprint_cells,
+        min_sign_cells: int = MergerConfig.min_sign_cells,
         retire_after_s: float = MergerConfig.retire_after_s,
         max_batch_patches: int = MergerConfig.max_batch_patches,
         max_batch_cells: int = MergerConfig.max_batch_cells,
@@ -200,6 +208,7 @@ class MergerShard:
         self.window = int(window_traversals)
         self.min_votes = int(min_votes)
         self.footprint_cells = int(footprint_cells)
+        self.min_sign_cells = int(min_sign_cells)
         self.retire_after_ns = None if retire_after_s < 0 else int(retire_after_s * 1e9)
         self.max_batch_patches = int(max_batch_patches)
         self.max_batch_cells = int(max_batch_cells)
@@ -282,6 +291,7 @@ class MergerShard:
             state.labels = tile_labels(
                 list(state.traversals.items()), window=self.window, min_votes=self.min_votes,
                 footprint_cells=self.footprint_cells, idle=idle,
+                min_sign_cells=self.min_sign_cells,
             )
             self._retire(state, idle)
             state.dirty = keep_dirty
@@ -350,6 +360,7 @@ def _check_patch(p: GridPatch) -> None:
 def tile_labels(
     traversals: list[tuple[str, _Traversal]], *, window: int, min_votes: int,
     footprint_cells: int = MergerConfig.footprint_cells, idle: list[str] | None = None,
+    min_sign_cells: int = MergerConfig.min_sign_cells,
 ) -> np.ndarray:
     """The evidence rule (module docstring) for one tile -> (512, 512) uint8 labels.
 
@@ -381,9 +392,22 @@ def tile_labels(
         seen[at] += 1
         packed[at * SLOTS + ballot] += weight.astype(np.uint64) + BALLOT
     scores = packed.reshape(-1, SLOTS)
-    rows = np.arange(len(observed))
+    winner = _decide(scores, min_votes)
+    # 4. a ground-sign blob too small to be a sign is decided again without its sign ballots
+    small = _small_sign_cells(observed, winner, min_sign_cells)
+    if small.size:
+        scores[small, Cls.GROUND_SIGN] = 0
+        winner[small] = _decide(scores[small], min_votes)
+    labels = np.zeros(CELLS_PER_TILE, dtype=np.uint8)
+    labels[observed] = winner
+    return labels.reshape(TILE_CELLS, TILE_CELLS)
+
+
+def _decide(scores: np.ndarray, min_votes: int) -> np.ndarray:
+    """Rule 3 on (cells, SLOTS) packed scores -> each cell's label (0 below min_votes)."""
+    rows = np.arange(len(scores))
     low = np.uint64(BALLOT - 1)
-    # 3. paint (its best class) against the pooled ground ballots (road + none + no paint),
+    # paint (its best class) against the pooled ground ballots (road + none + no paint),
     # then road against none; argmax ranks by ballots, then votes, then the lower class
     paint = np.argmax(scores[:, 2:NUM_CLASSES], axis=1) + 2
     p_score = scores[rows, paint]
@@ -394,9 +418,32 @@ def tile_labels(
     winner = np.where(paint_wins, paint, np.argmax(scores[:, :2], axis=1))
     votes = scores[rows, winner] & low
     winner[votes < min_votes] = 0
-    labels = np.zeros(CELLS_PER_TILE, dtype=np.uint8)
-    labels[observed] = winner
-    return labels.reshape(TILE_CELLS, TILE_CELLS)
+    return winner
+
+
+SIGN_GAP_CELLS = 3  # ground-sign cells this close (0.3 m) belong to one sign (letters, arrow parts)
+
+
+def _small_sign_cells(observed: np.ndarray, winner: np.ndarray, min_cells: int) -> np.ndarray:
+    """Rows of `observed` whose ground-sign label lies in a blob of fewer than `min_cells` cells
+    (blobs joined across gaps of SIGN_GAP_CELLS) that does not touch the tile's edge: a blob cut
+    by the edge may be part of a sign in the neighbouring tile, so it is kept."""
+    sign = winner == Cls.GROUND_SIGN
+    if min_cells <= 1 or not sign.any():
+        return np.empty(0, np.intp)
+    mask = np.zeros(CELLS_PER_TILE, np.uint8)
+    mask[observed[sign]] = 1
+    mask = mask.reshape(TILE_CELLS, TILE_CELLS)
+    k = 2 * SIGN_GAP_CELLS + 1
+    n, blob = cv2.connectedComponents(cv2.dilate(mask, np.ones((k, k), np.uint8)), connectivity=8)
+    blob = blob.ravel()
+    area = np.bincount(blob[observed[sign]], minlength=n)
+    edge = np.zeros(n, bool)
+    for side in (blob[:TILE_CELLS], blob[-TILE_CELLS:], blob[::TILE_CELLS], blob[TILE_CELLS - 1::TILE_CELLS]):
+        edge[side] = True
+    drop = (area < min_cells) & ~edge
+    rows = np.flatnonzero(sign)
+    return rows[drop[blob[observed[rows]]]]
 
 
 class TileCodecCache:

@@ -307,3 +307,39 @@ def test_a_late_patch_of_a_retired_traversal_revives_it():
     assert shard.counters["traversals_revived"] == 1 and shard.traversals_held() == held + 1
     shard.flush()
     assert np.array_equal(shard.labels((0, 0)), lane_tile())
+
+
+def _signs(tile_labels: np.ndarray, *, traversals=3, **kw):
+    return _merged(_traversals(tile_labels, traversals), **kw).labels((0, 0))
+
+
+def test_a_ground_sign_blob_too_small_for_a_sign_is_decided_without_its_sign_ballots():
+    seen = lane_tile()
+    seen[100:104, 200:202] = 5  # 8 cells of "sign" on the lane line: a model's confusion
+    seen[100:104, 260:263] = 5  # 12 cells of "sign" on bare road, seen as nothing else
+    lane_seen = seen.copy()
+    lane_seen[100:104, 200:202] = 2  # a third traversal saw the lane line there
+    patches = _traversals(seen, 2) + _traversals(lane_seen, 1, t0=10, prefix="e")
+    out = _merged(patches).labels((0, 0))
+    assert not (out == 5).any()
+    assert (out[100:104, 200:202] == 2).all()  # the lane line's ballot wins there
+    assert (out[100:104, 260:263] == 0).all()  # no other ballot: unknown, not road
+    assert (_merged(patches, min_sign_cells=0).labels((0, 0)) == 5).sum() == 20
+
+
+def test_a_sign_of_parts_joined_across_small_gaps_stays():
+    labels = lane_tile()
+    labels[100:112, 260:263] = 5  # arrow shaft: 36 cells
+    labels[114:118, 258:265] = 5  # head, 0.2 m above it: together one sign
+    labels[130:134, 260:263] = 5  # 12 cells 1.2 m away: a blob of its own, too small
+    out = _signs(labels)
+    assert (out[100:118] == 5).sum() == 36 + 28
+    assert not (out[130:134] == 5).any()
+
+
+def test_a_small_sign_blob_at_the_tile_edge_stays_and_the_rule_can_be_turned_off():
+    labels = lane_tile()
+    labels[0:3, 260:263] = 5  # cut by the tile's edge: may be part of the neighbour's sign
+    labels[100:104, 260:263] = 5
+    assert (_signs(labels)[0:3, 260:263] == 5).all()
+    assert (_signs(labels, min_sign_cells=0)[100:104, 260:263] == 5).all()
