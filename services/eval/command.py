@@ -6,7 +6,12 @@ and write DIR/eval.json (drives and summary) and DIR/eval.png.
 earlier run (RUN/drives/*) re-localized offline with today's localizer (services/eval/replay.py:
 the same frames, the tiles the car received, the car's own noise), each scored and summarized as
 above: minutes instead of the suite's forty, to judge a localizer change paired by drive. The
-fleet, the map and the frames stay those of RUN (its map figures are RUN's)."""
+fleet, the map and the frames stay those of RUN (its map figures are RUN's).
+
+`roadmap eval --remerge RUN --out DIR [--set merger.KEY=VALUE ...]`: RUN's maps rebuilt offline
+from the patches its shards stored, with today's merger (services/eval/remerge.py), and their
+per-class figures scored anew: seconds a drive, to judge an evidence-rule change paired by drive.
+The cars' figures stay RUN's."""
 
 import json
 import logging
@@ -16,6 +21,7 @@ from pathlib import Path
 
 from common.errors import ConfigError
 from services.eval.figure import eval_figure
+from services.eval.remerge import remerge_drive
 from services.eval.replay import RUN_KEYS, replay_drive
 from services.eval.run import run_suite, suite_settings
 from services.eval.suite import DEFAULT_SEEDS, Drive, parse_seeds, suite_drives
@@ -57,6 +63,10 @@ def format_summary(s: dict) -> str:
                  f"{_f(s['convergence_s']['max'])} s, integrity violations "
                  f"{s['integrity_violations']}, frames without markings "
                  f"{_f(s['frames_without_markings'])}")
+    for cls, q in (s.get("map") or {}).items():
+        lines.append(f"  map {cls:12s} precision min {_f(q['precision']['min'])} median "
+                     f"{_f(q['precision']['median'])}, recall min {_f(q['recall']['min'])} "
+                     f"median {_f(q['recall']['median'])}")
     lines.append("  goal: " + ", ".join(f"{k} {v}" for k, v in s["goal_met"].items()))
     return "\n".join(lines) + "\n"
 
@@ -66,11 +76,7 @@ def _f(v, scale=1.0) -> str:
 def relocalized(run: Path, sets: list[str], workers: int) -> list[dict]:
     """The entries of RUN's drives, each finished one's score replaced by its re-localization's
     (the report, map figures included, stays RUN's)."""
-    done = sorted(run.glob("drives/*/drive.json"))
-    if not done:
-        raise ConfigError(f"{run}: no finished drives (drives/*/drive.json) to re-localize")
-    entries = [json.loads(f.read_text()) for f in done]
-    redo = [(f.parent, e) for f, e in zip(done, entries, strict=True) if e.get("ok")]
+    entries, redo = _finished(run, "re-localize")
     with ProcessPoolExecutor(max_workers=max(workers, 1)) as pool:
         scores = pool.map(replay_drive, [d for d, _ in redo], [sets] * len(redo),
                           [True] * len(redo))
@@ -80,12 +86,44 @@ def relocalized(run: Path, sets: list[str], workers: int) -> list[dict]:
                         r["ok_frames"], r["inits"], r["cpu_s"])
     return entries
 
+def remerged(run: Path, sets: list[str], workers: int) -> list[dict]:
+    """The entries of RUN's drives, each finished one's map figures replaced by those of its
+    map rebuilt with today's merger (the car's score stays RUN's)."""
+    entries, redo = _finished(run, "re-merge")
+    with ProcessPoolExecutor(max_workers=max(workers, 1)) as pool:
+        maps = pool.map(remerge_drive, [d for d, _ in redo], [sets] * len(redo))
+        for (drive_dir, entry), m in zip(redo, maps, strict=True):
+            entry["report"]["map"]["per_class"] = m["per_class"]
+            entry["report"]["map"]["remerged"] = {"sets": sets,
+                                                  "changed_cells": m["changed_cells"]}
+            logger.info("%s re-merged: %d cells differ from the run's map", drive_dir.name,
+                        m["changed_cells"])
+    return entries
+
+
+def _finished(run: Path, verb: str) -> tuple[list[dict], list[tuple[Path, dict]]]:
+    """(every drive entry of RUN, the (folder, entry) of those that finished ok)."""
+    done = sorted(run.glob("drives/*/drive.json"))
+    if not done:
+        raise ConfigError(f"{run}: no finished drives (drives/*/drive.json) to {verb}")
+    entries = [json.loads(f.read_text()) for f in done]
+    return entries, [(f.parent, e) for f, e in zip(done, entries, strict=True) if e.get("ok")]
+
+
 def eval_command(args, cfg) -> int:
     out = Path(args.out)
+    offline = [(flag, run) for flag, run in (("--relocalize", args.relocalize),
+                                             ("--remerge", getattr(args, "remerge", None))) if run]
+    if len(offline) > 1:
+        raise ConfigError("--relocalize and --remerge: one at a time")
+    for flag, run in offline:
+        if Path(run).resolve() == out.resolve():
+            raise ConfigError(f"{flag}: give another --out (RUN keeps its own eval.json)")
     if args.relocalize:
-        if Path(args.relocalize).resolve() == out.resolve():
-            raise ConfigError("--relocalize: give another --out (RUN keeps its own eval.json)")
         entries = relocalized(Path(args.relocalize), list(args.set or []), args.workers)
+        out.mkdir(parents=True, exist_ok=True)
+    elif offline:
+        entries = remerged(Path(offline[0][1]), list(args.set or []), args.workers)
         out.mkdir(parents=True, exist_ok=True)
     else:
         drives = chosen_drives(args)

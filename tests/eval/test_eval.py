@@ -128,3 +128,19 @@ def test_roadmap_eval_runs_a_drive_scores_it_and_resumes(tmp_path):
     assert (relocal / "eval.png").stat().st_size > 1000
     same = roadmap("eval", "--relocalize", str(out), "--out", str(out), timeout=60)
     assert same.returncode != 0 and "another --out" in same.stderr
+    # re-merged offline from the shards' stored patches: the same merger gives the same map
+    remerged = tmp_path / "remerged"
+    res = roadmap("eval", "--remerge", str(out), "--out", str(remerged), timeout=120)
+    assert res.returncode == 0, res.stderr[-3000:]
+    (redo,) = json.loads((remerged / "eval.json").read_text())["drives"]
+    assert redo["report"]["map"]["remerged"]["changed_cells"] == 0
+    for name, q in redo["report"]["map"]["per_class"].items():  # precision, recall, cells
+        assert q == {k: drive["report"]["map"]["per_class"][name][k] for k in q}
+    assert redo["score"] == drive["score"]  # the car's figures stay the run's
+    # ... and a stricter rule another map: no label carries 1000 votes
+    strict = roadmap("eval", "--remerge", str(out), "--out", str(tmp_path / "strict"),
+                     "--set", "merger.min_votes=1000", timeout=120)
+    assert strict.returncode == 0, strict.stderr[-3000:]
+    (hard,) = json.loads((tmp_path / "strict" / "eval.json").read_text())["drives"]
+    assert hard["report"]["map"]["remerged"]["changed_cells"] > 1000
+    assert hard["report"]["map"]["per_class"]["lane_line"]["cells_map"] == 0

@@ -1,0 +1,78 @@
+"""An earlier run's map rebuilt offline from the patches its shards stored, with today's merger:
+the loop to iterate the evidence rule on, paired by drive (as replay.py is the car's).
+
+Each drive's shards keep every applied patch in their SQLite files (RUN/drives/<drive>/run/
+merger-s*.sqlite). They are applied again to one MergerShard with today's merger defaults and
+`--set merger.KEY=VALUE`. The labels are scored against the world's truth as the demo's report
+scores them (services/eval/map.py: the same mosaic of the run's tiles, the same observed area).
+With nothing changed this reproduces the run's map cell for cell. It takes seconds a drive
+instead of the suite's forty minutes. The car's figures stay the run's: the car localized on the
+run's map.
+
+    roadmap eval --remerge RUN --out DIR [--set merger.KEY=VALUE ...]"""
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from common.config import load_config
+from common.errors import ConfigError
+from common.grid import TILE_CELLS
+from common.messages import GridPatch
+from services.demo.fetch import load_tiles
+from services.demo.report import mapping_logs, observed_area
+from services.eval import map as ev
+from services.merger.shard import MergerShard
+from services.merger.store import ShardStore
+from services.sim.worlds import load_world
+
+BATCH = 4096  # patches applied at a time
+
+
+def stored_patches(drive_dir: Path) -> Iterator[GridPatch]:
+    """Every patch the drive's shards applied, shard by shard."""
+    stores = sorted((drive_dir / "run").glob("merger-s*.sqlite"))
+    if not stores:
+        raise ConfigError(f"{drive_dir}: no shard store (run/merger-s*.sqlite): --remerge reads "
+                          "the embedded SQLite stores, not a PostgreSQL one")
+    for path in stores:
+        store = ShardStore.read_only(path)
+        try:
+            yield from store.load_patches()
+        finally:
+            store.close()
+
+
+def merged_labels(patches, tiles: list[tuple[int, int]], merger_cfg) -> list[np.ndarray]:
+    """The labels of `tiles` (empty where no patch fell) after applying `patches`."""
+    shard = MergerShard.from_config(merger_cfg, owns=lambda tile: True)
+    batch = []
+    for p in patches:
+        batch.append(p)
+        if len(batch) == BATCH:
+            shard.apply_checked(batch)
+            batch = []
+    shard.apply_checked(batch)
+    shard.flush()
+    empty = np.zeros((TILE_CELLS, TILE_CELLS), np.uint8)
+    return [shard.tiles_state[t].labels if t in shard.tiles_state else empty for t in tiles]
+
+
+def remerge_drive(drive_dir: Path, sets: list[str]) -> dict:
+    """The map's per-class figures of the drive rebuilt with today's merger (+ sets), and how
+    many cells differ from the run's map."""
+    drive_dir = Path(drive_dir)
+    info = json.loads((drive_dir / "drive.json").read_text())
+    run_cfg = load_config(drive_dir / "config.toml")  # the fleet's: ROI and vehicle range
+    merger_cfg = load_config(sets=sets).merger
+    held = load_tiles(drive_dir / "run" / "tiles.npz")
+    labels = merged_labels(stored_patches(drive_dir), held["tiles"], merger_cfg)
+    mosaic = ev.Mosaic(held["tiles"])
+    raw = mosaic.paste(held["tiles"], labels)
+    truth = ev.truth_mosaic(load_world(info["world"], info["seed"]), mosaic, held["tiles"])
+    observed = observed_area(run_cfg, mosaic, mapping_logs(drive_dir))
+    return {"per_class": ev.map_quality(raw, truth, observed),
+            "changed_cells": int(np.count_nonzero(raw != mosaic.paste(held["tiles"],
+                                                                        held["raw"])))}
