@@ -112,18 +112,16 @@ def _finished(run: Path, verb: str) -> tuple[list[dict], list[tuple[Path, dict]]
 
 def eval_command(args, cfg) -> int:
     out = Path(args.out)
-    offline = [(flag, run) for flag, run in (("--relocalize", args.relocalize),
-                                             ("--remerge", getattr(args, "remerge", None))) if run]
-    if len(offline) > 1:
+    remerge = getattr(args, "remerge", None)
+    if args.relocalize and remerge:
         raise ConfigError("--relocalize and --remerge: one at a time")
-    for flag, run in offline:
+    run = args.relocalize or remerge
+    if run:
+        flag, offline = (("--relocalize", relocalized) if args.relocalize
+                         else ("--remerge", remerged))
         if Path(run).resolve() == out.resolve():
             raise ConfigError(f"{flag}: give another --out (RUN keeps its own eval.json)")
-    if args.relocalize:
-        entries = relocalized(Path(args.relocalize), list(args.set or []), args.workers)
-        out.mkdir(parents=True, exist_ok=True)
-    elif offline:
-        entries = remerged(Path(offline[0][1]), list(args.set or []), args.workers)
+        entries = offline(Path(run), list(args.set or []), args.workers)
         out.mkdir(parents=True, exist_ok=True)
     else:
         drives = chosen_drives(args)

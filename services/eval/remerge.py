@@ -28,8 +28,6 @@ from services.merger.shard import MergerShard
 from services.merger.store import ShardStore
 from services.sim.worlds import load_world
 
-BATCH = 4096  # patches applied at a time
-
 
 def stored_patches(drive_dir: Path) -> Iterator[GridPatch]:
     """Every patch the drive's shards applied, shard by shard."""
@@ -46,18 +44,13 @@ def stored_patches(drive_dir: Path) -> Iterator[GridPatch]:
 
 
 def merged_labels(patches, tiles: list[tuple[int, int]], merger_cfg) -> list[np.ndarray]:
-    """The labels of `tiles` (empty where no patch fell) after applying `patches`."""
+    """The labels of `tiles` (empty where no patch fell) after applying `patches` (stored, so
+    checked when they were first applied)."""
     shard = MergerShard.from_config(merger_cfg, owns=lambda tile: True)
-    batch = []
-    for p in patches:
-        batch.append(p)
-        if len(batch) == BATCH:
-            shard.apply_checked(batch)
-            batch = []
-    shard.apply_checked(batch)
+    shard.apply_checked(list(patches))
     shard.flush()
     empty = np.zeros((TILE_CELLS, TILE_CELLS), np.uint8)
-    return [shard.tiles_state[t].labels if t in shard.tiles_state else empty for t in tiles]
+    return [shard.labels(t) if t in shard.tiles_state else empty for t in tiles]
 
 
 def remerge_drive(drive_dir: Path, sets: list[str]) -> dict:
