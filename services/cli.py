@@ -171,6 +171,9 @@ def _eval(p: argparse.ArgumentParser) -> None:
     p.add_argument("--relocalize", metavar="RUN", default=None, help="re-localize the drives "
                    "of an earlier run (its --out) offline with today's localizer and --set, "
                    "and write the suite's eval.json for them to --out")
+    p.add_argument("--truth-map", action="store_true", help="with --relocalize: the car "
+                   "matches the world's true markings in the tiles it received, through the "
+                   "tile codec, instead of the fleet's map (what the car loses to the map)")
     p.add_argument("--remerge", metavar="RUN", default=None, help="rebuild the maps of an "
                    "earlier run's drives offline from their shards' stored patches with today's "
                    "merger and --set, and write the suite's eval.json with their map figures")

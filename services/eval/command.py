@@ -63,6 +63,12 @@ def format_summary(s: dict) -> str:
                  f"{_f(s['convergence_s']['max'])} s, integrity violations "
                  f"{s['integrity_violations']}, frames without markings "
                  f"{_f(s['frames_without_markings'])}")
+    since = s.get("from_first_marking")
+    if since:
+        lines.append(f"  from the first marking on, converged or not: x median "
+                     f"{_f(since['x_m']['median'])} p90 {_f(since['x_m']['p90'])} worst "
+                     f"{_f(since['x_m']['worst'])}, availability min "
+                     f"{_f(since['availability_0_5m']['min'])}")
     for cls, q in (s.get("map") or {}).items():
         lines.append(f"  map {cls:12s} precision min {_f(q['precision']['min'])} median "
                      f"{_f(q['precision']['median'])}, recall min {_f(q['recall']['min'])} "
@@ -73,15 +79,17 @@ def format_summary(s: dict) -> str:
 def _f(v, scale=1.0) -> str:
     return "-" if v is None else f"{v * scale:.3f}"
 
-def relocalized(run: Path, sets: list[str], workers: int) -> list[dict]:
+def relocalized(run: Path, sets: list[str], workers: int, truth_map: bool = False) -> list[dict]:
     """The entries of RUN's drives, each finished one's score replaced by its re-localization's
-    (the report, map figures included, stays RUN's)."""
+    (the report, map figures included, stays RUN's); `truth_map`: on the world's true markings
+    (replay.received_map)."""
     entries, redo = _finished(run, "re-localize")
     with ProcessPoolExecutor(max_workers=max(workers, 1)) as pool:
         scores = pool.map(replay_drive, [d for d, _ in redo], [sets] * len(redo),
-                          [True] * len(redo))
+                          [True] * len(redo), [truth_map] * len(redo))
         for (drive_dir, entry), r in zip(redo, scores, strict=True):
             entry["score"] = {k: v for k, v in r.items() if k not in RUN_KEYS}
+            entry["relocalized"] = {"sets": sets, "truth_map": truth_map}
             logger.info("%s re-localized: %d ok frames, %d inits, %.0f s CPU", drive_dir.name,
                         r["ok_frames"], r["inits"], r["cpu_s"])
     return entries
@@ -116,12 +124,16 @@ def eval_command(args, cfg) -> int:
     if args.relocalize and remerge:
         raise ConfigError("--relocalize and --remerge: one at a time")
     run = args.relocalize or remerge
+    truth_map = bool(getattr(args, "truth_map", False))
+    if truth_map and not args.relocalize:
+        raise ConfigError("--truth-map re-localizes a run: give --relocalize RUN")
     if run:
         flag, offline = (("--relocalize", relocalized) if args.relocalize
                          else ("--remerge", remerged))
         if Path(run).resolve() == out.resolve():
             raise ConfigError(f"{flag}: give another --out (RUN keeps its own eval.json)")
-        entries = offline(Path(run), list(args.set or []), args.workers)
+        entries = (relocalized(Path(run), list(args.set or []), args.workers, truth_map)
+                   if truth_map else offline(Path(run), list(args.set or []), args.workers))
         out.mkdir(parents=True, exist_ok=True)
     else:
         drives = chosen_drives(args)

@@ -22,7 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from common.config import RoiConfig, SegmentationConfig, load_config, with_sections
+from common.contours import decode_tile, encode_tile
 from common.drivelog import DriveLog
+from common.grid import TILE_CELLS, tile_origin_m
 from services.eval.score import markings_in_view, score_frames
 from services.localizer.localizer import get_localizer, replay
 from services.localizer.map_cache import get_tile_cache
@@ -77,25 +79,40 @@ def cache_file(drive_dir: Path) -> Path:
     return CACHE / f"{Path(drive_dir).name}-{key}.npz"
 
 
-def received_map(drive_dir: Path, lc):
-    """A TileCache holding every tile the car received in the run, in its latest version."""
+def received_map(drive_dir: Path, lc, truth: bool = False):
+    """A TileCache holding every tile the car received in the run, in its latest version; or,
+    `truth`, the world's true labels of those tiles through the tile codec (an oracle map: what
+    the car's figures owe to the fleet's map, and what to its own matching and filter)."""
     received = read_tiles(drive_dir / "localizer" / "tiles.npz")
     cache = get_tile_cache(lc)
     cache.capacity = max(cache.capacity, len(received) + 1)
+    world = _drive_world(drive_dir) if truth else None
     for _, msg in received:
-        cache.put(msg.tile, msg.version, decode_tile_message(msg))
+        labels = (decode_tile(encode_tile(world.rasterize(*tile_origin_m(msg.tile), TILE_CELLS,
+                                                          TILE_CELLS)))
+                  if truth else decode_tile_message(msg))
+        cache.put(msg.tile, msg.version, labels)
     return cache
 
 
-def replay_drive(drive_dir: Path, sets: list[str], keep_errors: bool = False) -> dict:
+def _drive_world(drive_dir: Path):
+    from services.sim.worlds import load_world
+
+    info = json.loads((drive_dir / "drive.json").read_text())
+    return load_world(info["world"], info["seed"])
+
+
+def replay_drive(drive_dir: Path, sets: list[str], keep_errors: bool = False,
+                 truth_map: bool = False) -> dict:
     """The suite's score of the stored drive re-localized with today's localizer (+ sets);
-    keep_errors: with the per-frame errors (`errors_m`, for the suite's figure)."""
+    keep_errors: with the per-frame errors (`errors_m`, for the suite's figure); truth_map: on
+    the world's true markings instead of the map the car received (received_map)."""
     drive_dir = Path(drive_dir)
     cfg = stored_config(drive_dir, sets)
     (prod,) = sorted((drive_dir / "drives" / "production").iterdir())
     log = DriveLog(prod)
     frames, in_view = frame_points(log, cfg, cache_file(drive_dir))
-    loc = get_localizer(cfg.localizer, received_map(drive_dir, cfg.localizer),
+    loc = get_localizer(cfg.localizer, received_map(drive_dir, cfg.localizer, truth_map),
                         camera=log.meta.camera)
     t0 = time.process_time()
     est = replay(loc, log.streams, lambda i: _pick(frames[i], cfg.localizer.attitude_roll))

@@ -74,6 +74,12 @@ def summarize(entries: list[dict]) -> dict:
                                                          for s in scores])},
         "paper_mean": PAPER_MEAN,
     }
+    since = [s for s in scores if "from_first_marking" in s]  # runs before 2026-12-07: none
+    if since:
+        summary["from_first_marking"] = {
+            **_errors(since, "from_first_marking"),
+            "availability_0_5m": _min_median([s["from_first_marking"]["availability_0_5m"]
+                                              for s in since])}
     summary["convergence_s"]["max"] = summary["convergence_s"].pop("worst")
     never = sum(s["convergence_s"] is None for s in scores)
     if never:

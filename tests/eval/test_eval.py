@@ -51,6 +51,21 @@ def test_convergence_counts_from_the_first_marking_in_view():
     assert s["convergence_s"] == pytest.approx(3.0)
 
 
+def test_a_start_metres_off_counts_from_the_first_marking_though_not_after_convergence():
+    n = 100
+    truth = _truth(n)
+    est = np.full((n, 3), np.nan)
+    est[20:] = truth[20:]
+    est[20:50, 0] += 4.0  # a pose from frame 20 on, 4 m off until frame 50
+    in_view = np.arange(n) >= 10
+    s = score_frames(np.arange(n) * 100_000_000, est, np.zeros(n, bool), truth, in_view)
+    assert s["convergence_s"] == pytest.approx(4.0)
+    assert s["markings_in_view"]["x_m"]["mean"] == pytest.approx(0.0)
+    since = s["from_first_marking"]
+    assert since["frames"] == 90 and since["availability_0_5m"] == pytest.approx(50 / 90)
+    assert since["x_m"]["mean"] == pytest.approx(4.0 * 30 / 80)
+
+
 def test_a_drive_that_never_converges_is_scored_over_all_its_frames():
     n = 60
     truth = _truth(n)
@@ -128,6 +143,18 @@ def test_roadmap_eval_runs_a_drive_scores_it_and_resumes(tmp_path):
     assert (relocal / "eval.png").stat().st_size > 1000
     same = roadmap("eval", "--relocalize", str(out), "--out", str(out), timeout=60)
     assert same.returncode != 0 and "another --out" in same.stderr
+    # ... and on the world's true markings (the oracle map): another map, the same frames
+    oracle = tmp_path / "oracle"
+    res = roadmap("eval", "--relocalize", str(out), "--truth-map", "--out", str(oracle),
+                  timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    (truth,) = json.loads((oracle / "eval.json").read_text())["drives"]
+    assert truth["relocalized"] == {"sets": [], "truth_map": True}
+    assert truth["score"]["markings_in_view"]["x_m"]["mean"] != pytest.approx(
+        live["markings_in_view"]["x_m"]["mean"], rel=1e-6)
+    assert truth["score"]["markings_in_view"]["x_m"]["mean"] < 0.2
+    lone = roadmap("eval", "--truth-map", "--out", str(oracle), timeout=60)
+    assert lone.returncode != 0 and "--relocalize RUN" in lone.stderr
     # re-merged offline from the shards' stored patches: the same merger gives the same map
     remerged = tmp_path / "remerged"
     res = roadmap("eval", "--remerge", str(out), "--out", str(remerged), timeout=120)
