@@ -218,6 +218,10 @@ class LocalizerConfig:
     init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
     init_travel_m: float = 12.0  # metres of frames gathered before the coarse search
     init_frames: int = 30
+    # a start among rivals as good as the best match (overlap within the margin: the next dash
+    # of a periodic line, a mirror-image pose) begins at the one the GNSS fixes clearly favour
+    # (Localizer._gnss_consistent), else at the most overlap; the others stay rivals either way
+    init_gnss_tiebreak: bool = True
     reinit_bad_frames: int = 30
     fetch_radius_m: float = 40.0  # tiles within this distance of the car are fetched
     prefetch_ahead_m: float = 60.0  # and these along the direction of travel

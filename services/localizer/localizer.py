@@ -74,6 +74,7 @@ class Localizer:
         dead_reckoning_drift_per_m: float = LocalizerConfig.dead_reckoning_drift_per_m,
         gnss_check: GnssCheck | None = None,
         along_fix_sigma_m: float = LocalizerConfig.along_fix_sigma_m,
+        init_gnss_tiebreak: bool = LocalizerConfig.init_gnss_tiebreak,
         seed: int = 0,
     ):
         self.cache, self.icp, self.ekf, self.search = cache, icp, ekf, search
@@ -95,6 +96,7 @@ class Localizer:
         self.min_marking_points, self.gnss_check = min_marking_points, gnss_check or GnssCheck()
         self.hold_drift_per_m, self.dead_reckoning_drift_per_m, self.along_fix_sigma_m = (
             hold_drift_per_m, dead_reckoning_drift_per_m, along_fix_sigma_m)
+        self.init_gnss_tiebreak = init_gnss_tiebreak
         self._start(seed)
 
     def _start(self, seed: int) -> None:
@@ -348,12 +350,11 @@ class Localizer:
         final = n >= self.submap.maxlen or self.travel_m >= self.init_travel_m
         if runner is not None and runner[0] > best[0] - self.init_margin and not final:
             return {"state": "init_ambiguous", "overlap": best[0], "runner_up": runner[0]}
+        equals = [c for c in distinct if c[0] > distinct[0][0] - self.init_margin]
+        if self.init_gnss_tiebreak:
+            best = self._gnss_consistent(equals, centre_of_yaw)
         self._start_filter(best[1])
-        self.rivals = [
-            (res.pose, self.odom.copy())
-            for overlap, res in distinct[1:]
-            if overlap > best[0] - self.init_margin
-        ]
+        self.rivals = [(res.pose, self.odom.copy()) for _, res in equals if res is not best[1]]
         self.rivals_since_m = self.travel_m
         return {
             "state": "initialized",
@@ -361,6 +362,20 @@ class Localizer:
             "runner_up": None if runner is None else runner[0],
             "rivals": len(self.rivals),
         }
+
+    def _gnss_consistent(self, equals: list, centre_of_yaw) -> tuple:
+        """Of equally good starts (overlap within the margin of the best, most overlap first),
+        the one nearest the buffered GNSS fixes' centre where the fixes favour it over the first
+        by more than GNSS_TIEBREAK_NATS (a Gaussian of their mean reported sigma), else the
+        first. On periodic dashes the candidate a period (9-12 m) off can match a little better
+        than the true one, and the GNSS check restarted the filter only 5-7 s later; rivals a
+        metre or two apart are within the receiver's bias of each other, and the overlap decides
+        between them as before."""
+        sigma = np.mean([s for _, _, s in self.gnss]) / self.gnss_inflate  # as reported
+        offsets = [_gnss_offset_m(c[1].pose, centre_of_yaw) for c in equals]
+        near = int(np.argmin(offsets))
+        nats = (offsets[0] ** 2 - offsets[near] ** 2) / (2.0 * sigma**2)
+        return equals[near] if nats > GNSS_TIEBREAK_NATS else equals[0]
 
     def _held(self, res: IcpResult) -> np.ndarray:
         """The information a match adds, plus, on a degenerate match (lane lines only: nothing
@@ -536,6 +551,16 @@ def _distinct(ranked):
     return distinct(ranked, lambda pair: pair[1].pose, min_sep_rad=RIVAL_SEP_RAD)
 
 
+# the GNSS evidence (log-likelihood ratio) that moves a start to another of equally good matches:
+# odds of e^2, about 7 to 1
+GNSS_TIEBREAK_NATS = 2.0
+
+
+def _gnss_offset_m(pose: np.ndarray, centre_of_yaw) -> float:
+    """How far a pose lies from the buffered GNSS fixes' centre at its yaw (_gnss_prior)."""
+    return float(np.hypot(*(np.asarray(pose[:2]) - centre_of_yaw(pose[2]))))
+
+
 def _far(a: np.ndarray, b: np.ndarray) -> bool:
     return far_apart(a, b, min_sep_rad=RIVAL_SEP_RAD)
 
@@ -605,6 +630,7 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         hold_drift_per_m=lc.hold_drift_per_m,
         dead_reckoning_drift_per_m=lc.dead_reckoning_drift_per_m,
         along_fix_sigma_m=lc.along_fix_sigma_m,
+        init_gnss_tiebreak=lc.init_gnss_tiebreak,
         gnss_check=GnssCheck(lc.gnss_check_fixes, lc.gnss_alert_sigmas),
         seed=seed,
     )
