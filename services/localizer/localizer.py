@@ -51,8 +51,7 @@ class Localizer:
         init_frames: int = LocalizerConfig.init_frames,
         init_min_overlap: float = 0.5,
         init_sigma_m: float = 0.3,
-        init_min_frames: int = 8,
-        init_every: int = 4,
+        init_min_frames: int = 8, init_every: int = 4,
         init_margin: float = 0.05,
         reinit_bad_frames: int = LocalizerConfig.reinit_bad_frames,
         recent_frames: int = LocalizerConfig.recent_frames,
@@ -88,15 +87,14 @@ class Localizer:
         self.track_gate_m, self.init_min_marking_points = track_gate_m, init_min_marking_points
         # camera attitude (pitch, roll) offset from the ICP attitude: constant, vibration averages
         self.calibration, self.calibration_rate = np.zeros(2), calibration_rate
-        self.reinit_gnss_rejections = reinit_gnss_rejections
-        self.hold_m, self.hold_below_m = hold_m, hold_below_m
+        self.reinit_gnss_rejections, self.init_gnss_tiebreak, self.hold_m, self.hold_below_m = (
+            reinit_gnss_rejections, init_gnss_tiebreak, hold_m, hold_below_m)
         self.rival_travel_m, self.rival_points = rival_travel_m, rival_points
         self.alert_limit_m, self.integrity_k = alert_limit_m, integrity_k
         self.settle_frames, self.reacquire_settle_frames = settle_frames, reacquire_settle_frames
         self.min_marking_points, self.gnss_check = min_marking_points, gnss_check or GnssCheck()
         self.hold_drift_per_m, self.dead_reckoning_drift_per_m, self.along_fix_sigma_m = (
             hold_drift_per_m, dead_reckoning_drift_per_m, along_fix_sigma_m)
-        self.init_gnss_tiebreak = init_gnss_tiebreak
         self._start(seed)
 
     def _start(self, seed: int) -> None:
