@@ -17,6 +17,7 @@ import json
 import logging
 import sys
 from concurrent.futures import ProcessPoolExecutor
+from functools import partial
 from pathlib import Path
 
 from common.errors import ConfigError
@@ -128,12 +129,11 @@ def eval_command(args, cfg) -> int:
     if truth_map and not args.relocalize:
         raise ConfigError("--truth-map re-localizes a run: give --relocalize RUN")
     if run:
-        flag, offline = (("--relocalize", relocalized) if args.relocalize
-                         else ("--remerge", remerged))
+        flag, offline = (("--relocalize", partial(relocalized, truth_map=truth_map))
+                         if args.relocalize else ("--remerge", remerged))
         if Path(run).resolve() == out.resolve():
             raise ConfigError(f"{flag}: give another --out (RUN keeps its own eval.json)")
-        entries = (relocalized(Path(run), list(args.set or []), args.workers, truth_map)
-                   if truth_map else offline(Path(run), list(args.set or []), args.workers))
+        entries = offline(Path(run), list(args.set or []), args.workers)
         out.mkdir(parents=True, exist_ok=True)
     else:
         drives = chosen_drives(args)

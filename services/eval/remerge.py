@@ -11,7 +11,6 @@ run's map.
 
     roadmap eval --remerge RUN --out DIR [--set merger.KEY=VALUE ...]"""
 
-import json
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -24,9 +23,9 @@ from common.messages import GridPatch
 from services.demo.fetch import load_tiles
 from services.demo.report import mapping_logs, observed_area
 from services.eval import map as ev
+from services.eval.run import drive_world
 from services.merger.shard import MergerShard
 from services.merger.store import ShardStore
-from services.sim.worlds import load_world
 
 
 def stored_patches(drive_dir: Path) -> Iterator[GridPatch]:
@@ -57,14 +56,13 @@ def remerge_drive(drive_dir: Path, sets: list[str]) -> dict:
     """The map's per-class figures of the drive rebuilt with today's merger (+ sets), and how
     many cells differ from the run's map."""
     drive_dir = Path(drive_dir)
-    info = json.loads((drive_dir / "drive.json").read_text())
     run_cfg = load_config(drive_dir / "config.toml")  # the fleet's: ROI and vehicle range
     merger_cfg = load_config(sets=sets).merger
     held = load_tiles(drive_dir / "run" / "tiles.npz")
     labels = merged_labels(stored_patches(drive_dir), held["tiles"], merger_cfg)
     mosaic = ev.Mosaic(held["tiles"])
     raw = mosaic.paste(held["tiles"], labels)
-    truth = ev.truth_mosaic(load_world(info["world"], info["seed"]), mosaic, held["tiles"])
+    truth = ev.truth_mosaic(drive_world(drive_dir), mosaic, held["tiles"])
     observed = observed_area(run_cfg, mosaic, mapping_logs(drive_dir))
     return {"per_class": ev.map_quality(raw, truth, observed),
             "changed_cells": int(np.count_nonzero(raw != mosaic.paste(held["tiles"],

@@ -25,6 +25,7 @@ from common.config import RoiConfig, SegmentationConfig, load_config, with_secti
 from common.contours import decode_tile, encode_tile
 from common.drivelog import DriveLog
 from common.grid import TILE_CELLS, tile_origin_m
+from services.eval.run import drive_world
 from services.eval.score import markings_in_view, score_frames
 from services.localizer.localizer import get_localizer, replay
 from services.localizer.map_cache import get_tile_cache
@@ -86,20 +87,13 @@ def received_map(drive_dir: Path, lc, truth: bool = False):
     received = read_tiles(drive_dir / "localizer" / "tiles.npz")
     cache = get_tile_cache(lc)
     cache.capacity = max(cache.capacity, len(received) + 1)
-    world = _drive_world(drive_dir) if truth else None
+    world = drive_world(drive_dir) if truth else None
     for _, msg in received:
         labels = (decode_tile(encode_tile(world.rasterize(*tile_origin_m(msg.tile), TILE_CELLS,
                                                           TILE_CELLS)))
                   if truth else decode_tile_message(msg))
         cache.put(msg.tile, msg.version, labels)
     return cache
-
-
-def _drive_world(drive_dir: Path):
-    from services.sim.worlds import load_world
-
-    info = json.loads((drive_dir / "drive.json").read_text())
-    return load_world(info["world"], info["seed"])
 
 
 def replay_drive(drive_dir: Path, sets: list[str], keep_errors: bool = False,

@@ -16,10 +16,17 @@ from common.config import DemoConfig, RoiConfig
 from common.errors import ConfigError
 from services.eval.score import score_drive
 from services.eval.suite import PRODUCTION_KM, Drive
+from services.sim.worlds import load_world
 
 logger = logging.getLogger(__name__)
 
 DRIVE_TIMEOUT_S = 1800.0
+
+
+def drive_world(drive_dir: Path):
+    """The world (with its truth) a suite drive's folder was run on, as its drive.json names."""
+    info = json.loads((Path(drive_dir) / "drive.json").read_text())
+    return load_world(info["world"], info["seed"])
 
 
 def suite_settings(sets: list[str], vehicles: int) -> dict:
