@@ -177,6 +177,10 @@ def _eval(p: argparse.ArgumentParser) -> None:
     p.add_argument("--remerge", metavar="RUN", default=None, help="rebuild the maps of an "
                    "earlier run's drives offline from their shards' stored patches with today's "
                    "merger and --set, and write the suite's eval.json with their map figures")
+    p.add_argument("--remap", metavar="RUN", default=None, help="make the maps of an earlier "
+                   "run's drives again offline from their mapping drives' stored frames with "
+                   "today's mapper and --set (vehicle., segmentation., merger.), and write the "
+                   "suite's eval.json with their map figures")
     _common(p)
 
 

@@ -11,7 +11,12 @@ fleet, the map and the frames stay those of RUN (its map figures are RUN's).
 `roadmap eval --remerge RUN --out DIR [--set merger.KEY=VALUE ...]`: RUN's maps rebuilt offline
 from the patches its shards stored, with today's merger (services/eval/remerge.py), and their
 per-class figures scored anew: seconds a drive, to judge an evidence-rule change paired by drive.
-The cars' figures stay RUN's."""
+The cars' figures stay RUN's.
+
+`roadmap eval --remap RUN --out DIR [--set vehicle.KEY=VALUE ...]`: RUN's maps made again
+offline from its mapping drives' stored frames with today's mapper and segmenter
+(services/eval/remap.py) and merged and scored anew: minutes for the suite, to judge a change of
+the vehicles' side of the map paired by drive. The cars' figures stay RUN's."""
 
 import json
 import logging
@@ -22,6 +27,7 @@ from pathlib import Path
 
 from common.errors import ConfigError
 from services.eval.figure import eval_figure
+from services.eval.remap import remap_drive
 from services.eval.remerge import remerge_drive
 from services.eval.replay import RUN_KEYS, replay_drive
 from services.eval.run import run_suite, suite_settings
@@ -95,17 +101,20 @@ def relocalized(run: Path, sets: list[str], workers: int, truth_map: bool = Fals
                         r["ok_frames"], r["inits"], r["cpu_s"])
     return entries
 
-def remerged(run: Path, sets: list[str], workers: int) -> list[dict]:
+def remerged(run: Path, sets: list[str], workers: int, *, remap: bool = False) -> list[dict]:
     """The entries of RUN's drives, each finished one's map figures replaced by those of its
-    map rebuilt with today's merger (the car's score stays RUN's)."""
-    entries, redo = _finished(run, "re-merge")
+    map rebuilt with today's merger (the car's score stays RUN's); with `remap`, made again
+    from its mapping drives' frames with today's mapper first (remap_drive)."""
+    verb, done, key = (("re-map", "re-mapped", "remapped") if remap
+                       else ("re-merge", "re-merged", "remerged"))
+    entries, redo = _finished(run, verb)
     with ProcessPoolExecutor(max_workers=max(workers, 1)) as pool:
-        maps = pool.map(remerge_drive, [d for d, _ in redo], [sets] * len(redo))
+        maps = pool.map(remap_drive if remap else remerge_drive, [d for d, _ in redo],
+                        [sets] * len(redo))
         for (drive_dir, entry), m in zip(redo, maps, strict=True):
             entry["report"]["map"]["per_class"] = m["per_class"]
-            entry["report"]["map"]["remerged"] = {"sets": sets,
-                                                  "changed_cells": m["changed_cells"]}
-            logger.info("%s re-merged: %d cells differ from the run's map", drive_dir.name,
+            entry["report"]["map"][key] = {"sets": sets, "changed_cells": m["changed_cells"]}
+            logger.info("%s %s: %d cells differ from the run's map", drive_dir.name, done,
                         m["changed_cells"])
     return entries
 
@@ -121,16 +130,17 @@ def _finished(run: Path, verb: str) -> tuple[list[dict], list[tuple[Path, dict]]
 
 def eval_command(args, cfg) -> int:
     out = Path(args.out)
-    remerge = getattr(args, "remerge", None)
-    if args.relocalize and remerge:
-        raise ConfigError("--relocalize and --remerge: one at a time")
-    run = args.relocalize or remerge
+    remerge, remap = getattr(args, "remerge", None), getattr(args, "remap", None)
+    if sum(bool(r) for r in (args.relocalize, remerge, remap)) > 1:
+        raise ConfigError("--relocalize, --remerge and --remap: one at a time")
+    run = args.relocalize or remerge or remap
     truth_map = bool(getattr(args, "truth_map", False))
     if truth_map and not args.relocalize:
         raise ConfigError("--truth-map re-localizes a run: give --relocalize RUN")
     if run:
         flag, offline = (("--relocalize", partial(relocalized, truth_map=truth_map))
-                         if args.relocalize else ("--remerge", remerged))
+                         if args.relocalize else ("--remap", partial(remerged, remap=True))
+                         if remap else ("--remerge", remerged))
         if Path(run).resolve() == out.resolve():
             raise ConfigError(f"{flag}: give another --out (RUN keeps its own eval.json)")
         entries = offline(Path(run), list(args.set or []), args.workers)

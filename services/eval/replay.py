@@ -39,10 +39,12 @@ CACHE = Path("/tmp/roadmap-replay")
 RUN_KEYS = ("drive", "inits", "cpu_s", "ok_frames")
 
 
-def stored_config(drive_dir: Path, sets: list[str]):
+def stored_config(drive_dir: Path, sets: list[str], role: str = "localizer"):
     """Today's defaults with the run's segmentation and ROI (what made its frames), then sets.
-    Keys that no longer exist are left out."""
-    with open(drive_dir / "localizer" / "config.toml", "rb") as f:
+    Keys that no longer exist are left out. `role`: whose config file ("localizer": the car's
+    localizer/config.toml; "fleet": the run's config.toml, the mapping vehicles')."""
+    path = drive_dir / ("config.toml" if role == "fleet" else f"{role}/config.toml")
+    with open(path, "rb") as f:
         old = tomllib.load(f)
     fields = {"segmentation": SegmentationConfig.__dataclass_fields__,
               "roi": RoiConfig.__dataclass_fields__}

@@ -439,7 +439,8 @@ def _small_sign_cells(observed: np.ndarray, winner: np.ndarray, min_cells: int) 
     blob = blob.ravel()
     area = np.bincount(blob[observed[sign]], minlength=n)
     edge = np.zeros(n, bool)
-    for side in (blob[:TILE_CELLS], blob[-TILE_CELLS:], blob[::TILE_CELLS], blob[TILE_CELLS - 1::TILE_CELLS]):
+    for side in (blob[:TILE_CELLS], blob[-TILE_CELLS:], blob[::TILE_CELLS],
+                 blob[TILE_CELLS - 1::TILE_CELLS]):
         edge[side] = True
     drop = (area < min_cells) & ~edge
     rows = np.flatnonzero(sign)

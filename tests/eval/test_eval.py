@@ -171,3 +171,23 @@ def test_roadmap_eval_runs_a_drive_scores_it_and_resumes(tmp_path):
     (hard,) = json.loads((tmp_path / "strict" / "eval.json").read_text())["drives"]
     assert hard["report"]["map"]["remerged"]["changed_cells"] > 1000
     assert hard["report"]["map"]["per_class"]["lane_line"]["cells_map"] == 0
+    # made again from the mapping drives' stored frames: the same mapper, the same map ...
+    remapped = tmp_path / "remapped"
+    res = roadmap("eval", "--remap", str(out), "--out", str(remapped), timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    (redo,) = json.loads((remapped / "eval.json").read_text())["drives"]
+    assert redo["report"]["map"]["remapped"] == {"sets": [], "changed_cells": 0}
+    for name, q in redo["report"]["map"]["per_class"].items():
+        assert q == {k: drive["report"]["map"]["per_class"][name][k] for k in q}
+    assert redo["score"] == drive["score"]
+    # ... and paint that must be seen in 1000 frames of a vehicle is never voted
+    rare = tmp_path / "rare"
+    res = roadmap("eval", "--remap", str(out), "--out", str(rare),
+                  "--set", "vehicle.min_paint_frames=1000", timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    (hard,) = json.loads((rare / "eval.json").read_text())["drives"]
+    assert hard["report"]["map"]["remapped"]["changed_cells"] > 1000
+    assert hard["report"]["map"]["per_class"]["lane_line"]["cells_map"] == 0
+    both = roadmap("eval", "--remap", str(out), "--remerge", str(out), "--out", str(rare),
+                   timeout=60)
+    assert both.returncode != 0 and "one at a time" in both.stderr
