@@ -33,8 +33,10 @@ Evidence rule (DESIGN.md: Map updating), per cell:
      parts up to SIGN_GAP_CELLS (0.3 m) apart joined; a painted arrow covers 100-150) is decided
      again by rule 3 with its sign ballots left out: the lane line a model half mistook for a
      sign, else unknown. A blob that touches the tile's edge is kept, as it may be part of a
-     sign in the next tile: the rule stays a function of the tile's own ballots. This departs
-     from DESIGN.md's "the class with the most evidence" (docs/ARCHITECTURE.md).
+     sign in the next tile: the rule stays a function of the tile's own ballots. The same for
+     a stop-line blob of fewer than merger.min_stop_cells cells (a stop line spans a lane:
+     90-150 cells). This departs from DESIGN.md's "the class with the most evidence"
+     (docs/ARCHITECTURE.md).
 Consequences: after any number (50) of traversals of the old paint, new paint (or its removal:
 road, other paint or nothing) wins as soon as 2 of the last 3 traversals that saw the cell saw
 it: the map follows within 2 traversals that pass the cell, within 3 when one of them misses
@@ -184,6 +186,7 @@ class MergerShard:
             min_votes=merger_cfg.min_votes,
             footprint_cells=merger_cfg.footprint_cells,
             min_sign_cells=merger_cfg.min_sign_cells,
+            min_stop_cells=merger_cfg.min_stop_cells,
             retire_after_s=merger_cfg.retire_after_s,
             max_batch_patches=merger_cfg.max_batch_patches,
             max_batch_cells=merger_cfg.max_batch_cells,
@@ -197,6 +200,7 @@ class MergerShard:
         min_votes: int = MergerConfig.min_votes,
         footprint_cells: int = MergerConfig.footprint_cells,
         min_sign_cells: int = MergerConfig.min_sign_cells,
+        min_stop_cells: int = MergerConfig.min_stop_cells,
         retire_after_s: float = MergerConfig.retire_after_s,
         max_batch_patches: int = MergerConfig.max_batch_patches,
         max_batch_cells: int = MergerConfig.max_batch_cells,
@@ -209,6 +213,7 @@ class MergerShard:
         self.min_votes = int(min_votes)
         self.footprint_cells = int(footprint_cells)
         self.min_sign_cells = int(min_sign_cells)
+        self.min_stop_cells = int(min_stop_cells)
         self.retire_after_ns = None if retire_after_s < 0 else int(retire_after_s * 1e9)
         self.max_batch_patches = int(max_batch_patches)
         self.max_batch_cells = int(max_batch_cells)
@@ -291,7 +296,7 @@ class MergerShard:
             state.labels = tile_labels(
                 list(state.traversals.items()), window=self.window, min_votes=self.min_votes,
                 footprint_cells=self.footprint_cells, idle=idle,
-                min_sign_cells=self.min_sign_cells,
+                min_sign_cells=self.min_sign_cells, min_stop_cells=self.min_stop_cells,
             )
             self._retire(state, idle)
             state.dirty = keep_dirty
@@ -361,6 +366,7 @@ def tile_labels(
     traversals: list[tuple[str, _Traversal]], *, window: int, min_votes: int,
     footprint_cells: int = MergerConfig.footprint_cells, idle: list[str] | None = None,
     min_sign_cells: int = MergerConfig.min_sign_cells,
+    min_stop_cells: int = MergerConfig.min_stop_cells,
 ) -> np.ndarray:
     """The evidence rule (module docstring) for one tile -> (512, 512) uint8 labels.
 
@@ -393,11 +399,13 @@ def tile_labels(
         packed[at * SLOTS + ballot] += weight.astype(np.uint64) + BALLOT
     scores = packed.reshape(-1, SLOTS)
     winner = _decide(scores, min_votes)
-    # 4. a ground-sign blob too small to be a sign is decided again without its sign ballots
-    small = _small_sign_cells(observed, winner, min_sign_cells)
-    if small.size:
-        scores[small, Cls.GROUND_SIGN] = 0
-        winner[small] = _decide(scores[small], min_votes)
+    # 4. a ground-sign (stop-line) blob too small to be a sign (stop line) is decided again
+    # without its sign (stop-line) ballots
+    for cls, min_cells in ((Cls.GROUND_SIGN, min_sign_cells), (Cls.STOP_LINE, min_stop_cells)):
+        small = _small_blob_cells(observed, winner, cls, min_cells)
+        if small.size:
+            scores[small, cls] = 0
+            winner[small] = _decide(scores[small], min_votes)
     labels = np.zeros(CELLS_PER_TILE, dtype=np.uint8)
     labels[observed] = winner
     return labels.reshape(TILE_CELLS, TILE_CELLS)
@@ -421,14 +429,17 @@ def _decide(scores: np.ndarray, min_votes: int) -> np.ndarray:
     return winner
 
 
-SIGN_GAP_CELLS = 3  # ground-sign cells this close (0.3 m) belong to one sign (letters, arrow parts)
+# cells of one class this close (0.3 m) belong to one marking (a sign's letters, arrow parts; a
+# stop line's worn pieces)
+SIGN_GAP_CELLS = 3
 
 
-def _small_sign_cells(observed: np.ndarray, winner: np.ndarray, min_cells: int) -> np.ndarray:
-    """Rows of `observed` whose ground-sign label lies in a blob of fewer than `min_cells` cells
+def _small_blob_cells(observed: np.ndarray, winner: np.ndarray, cls: int,
+                      min_cells: int) -> np.ndarray:
+    """Rows of `observed` whose label `cls` lies in a blob of fewer than `min_cells` cells
     (blobs joined across gaps of SIGN_GAP_CELLS) that does not touch the tile's edge: a blob cut
-    by the edge may be part of a sign in the neighbouring tile, so it is kept."""
-    sign = winner == Cls.GROUND_SIGN
+    by the edge may be part of a marking in the neighbouring tile, so it is kept."""
+    sign = winner == cls
     if min_cells <= 1 or not sign.any():
         return np.empty(0, np.intp)
     mask = np.zeros(CELLS_PER_TILE, np.uint8)

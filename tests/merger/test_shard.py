@@ -343,3 +343,13 @@ def test_a_small_sign_blob_at_the_tile_edge_stays_and_the_rule_can_be_turned_off
     labels[100:104, 260:263] = 5
     assert (_signs(labels)[0:3, 260:263] == 5).all()
     assert (_signs(labels, min_sign_cells=0)[100:104, 260:263] == 5).all()
+
+
+def test_a_stop_line_blob_too_small_for_a_stop_line_is_decided_without_its_stop_ballots():
+    labels = lane_tile()
+    labels[200:204, 100:135] = 3  # a stop line across a lane: 0.4 m x 3.5 m, 140 cells
+    labels[300:302, 260:263] = 3  # 6 cells of "stop line" on bare road: a model's confusion
+    out = _signs(labels, min_stop_cells=20)
+    assert (out[200:204, 100:135] == 3).all()
+    assert not (out[300:302, 260:263] == 3).any()
+    assert (_signs(labels, min_stop_cells=0)[300:302, 260:263] == 3).all()  # the rule off
