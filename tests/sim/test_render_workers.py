@@ -16,7 +16,7 @@ import multiprocessing, os, sys, time
 from services.sim.simulate import die_with_parent
 
 def work(_):
-    print(os.getpid(), flush=True)
+    os.write(1, f"{os.getpid()}\\n".encode())  # one write a line: print's two can interleave
     time.sleep(60)
 
 with multiprocessing.get_context("fork").Pool(2, initializer=die_with_parent) as pool:
