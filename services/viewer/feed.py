@@ -1,12 +1,13 @@
 """Sources that fill a ViewerState: a live fleet over Zenoh (tile-update and pose subscriptions,
 plus a refresher thread that lists the shards' tiles and counters, catches up on any tile newer
-than the one held, and reads the liveliness tokens), or the tiles of a demo's folder on disk."""
+than the one held, and reads the liveliness tokens; a liveliness subscription shows a process
+that comes and goes between two refreshes), or the tiles of a demo's folder on disk."""
 
 import logging
 import threading
 
 from common import codec, keys
-from common.bus import Callback, ZError
+from common.bus import Callback, SampleKind, ZError
 from common.errors import CodecError
 from common.messages import Pose, Tile
 from services import fleet
@@ -29,6 +30,11 @@ class LiveFeed:
         self.pose_sub = session.declare_subscriber(
             keys.POSE_ALL, Callback(self._on_pose, indirect=False))
         self.token = session.liveliness().declare_token(keys.alive("viewer", ident))
+        # tokens as they come and go (a small demo's vehicle lives 2 s, under one refresh)
+        self._alive_lock = threading.Lock()
+        self._alive: dict[str, set[str]] = {}
+        self.alive_sub = session.liveliness().declare_subscriber(
+            keys.alive_all(), self._on_alive, history=True)
         self.thread = threading.Thread(target=self._refresh_loop, name="viewer-refresh",
                                        daemon=True)
 
@@ -39,7 +45,7 @@ class LiveFeed:
     def close(self) -> None:
         self._stop.set()
         self.thread.join(timeout=10.0)
-        for entity in (self.token, self.tile_sub, self.pose_sub):
+        for entity in (self.token, self.tile_sub, self.pose_sub, self.alive_sub):
             try:
                 entity.undeclare()
             except ZError as exc:
@@ -50,6 +56,19 @@ class LiveFeed:
             self.state.put_tile(codec.decode(sample.payload.to_bytes(), expect=Tile))
         except CodecError as exc:
             logger.warning("tile update %s: %s", sample.key_expr, exc)
+
+    def _on_alive(self, sample) -> None:
+        try:
+            role, ident = keys.parse_alive(str(sample.key_expr))
+        except CodecError:
+            return
+        with self._alive_lock:
+            ids = self._alive.setdefault(role, set())
+            if sample.kind == SampleKind.DELETE:
+                ids.discard(ident)
+            else:
+                ids.add(ident)
+            self.state.put_alive({r: sorted(i) for r, i in sorted(self._alive.items()) if i})
 
     def _on_pose(self, sample) -> None:
         try:
@@ -76,7 +95,10 @@ class LiveFeed:
         """Shards' counters and tile lists, liveliness, and every listed tile the state lacks
         or holds an older version of (a publication missed, or sent before the viewer)."""
         owners = self.refresh_stats()
-        self.state.put_alive(fleet.alive(self.session, self.timeout_s))
+        alive = fleet.alive(self.session, self.timeout_s)  # the snapshot settles missed events
+        with self._alive_lock:
+            self._alive = {role: set(ids) for role, ids in alive.items()}
+            self.state.put_alive(alive)
         held = self.state.versions()
         for tile, shard in sorted(owners.items()):
             if self._stop.is_set():
