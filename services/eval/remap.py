@@ -19,17 +19,12 @@ more. The car's figures stay the run's: the car localized on the run's map.
 import threading
 from pathlib import Path
 
-import numpy as np
-
 from common.drivelog import DriveLog
 from common.messages import GridPatch, SparsePatch
 from common.sparse import expand_patch
-from services.demo.fetch import load_tiles
-from services.demo.report import mapping_logs, observed_area
-from services.eval import map as ev
-from services.eval.remerge import merged_labels
+from services.demo.report import mapping_logs
+from services.eval.remerge import scored_map
 from services.eval.replay import stored_config
-from services.eval.run import drive_world
 from services.vehicle.node import StageTimer, build_mapper, map_log
 
 
@@ -51,13 +46,4 @@ def remap_drive(drive_dir: Path, sets: list[str]) -> dict:
     cfg = stored_config(drive_dir, sets, role="fleet")
     logs = mapping_logs(drive_dir)
     patches = [p for log_json in logs for p in mapped_patches(log_json.parent, cfg)]
-    held = load_tiles(drive_dir / "run" / "tiles.npz")
-    labels = merged_labels(patches, held["tiles"], cfg.merger)
-    mosaic = ev.Mosaic(held["tiles"])
-    raw = mosaic.paste(held["tiles"], labels)
-    truth = ev.truth_mosaic(drive_world(drive_dir), mosaic, held["tiles"])
-    observed = observed_area(cfg, mosaic, logs)
-    run_raw = mosaic.paste(held["tiles"], held["raw"])
-    return {"per_class": ev.map_quality(raw, truth, observed),
-            "changed_cells": int(np.count_nonzero(raw != run_raw)),
-            "patches": len(patches)}
+    return scored_map(drive_dir, patches, cfg.merger, cfg, logs) | {"patches": len(patches)}

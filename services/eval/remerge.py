@@ -57,13 +57,21 @@ def remerge_drive(drive_dir: Path, sets: list[str]) -> dict:
     many cells differ from the run's map."""
     drive_dir = Path(drive_dir)
     run_cfg = load_config(drive_dir / "config.toml")  # the fleet's: ROI and vehicle range
-    merger_cfg = load_config(sets=sets).merger
+    return scored_map(drive_dir, stored_patches(drive_dir), load_config(sets=sets).merger,
+                      run_cfg)
+
+
+def scored_map(drive_dir: Path, patches, merger_cfg, fleet_cfg, logs=None) -> dict:
+    """The per-class figures of the map `patches` make with `merger_cfg` on the run's tiles,
+    scored as the demo's report scores a map (the observed area of the mapping drive logs
+    `logs`, default all of the run's, under `fleet_cfg`'s ROI and vehicle range), and how many
+    cells differ from the run's map."""
     held = load_tiles(drive_dir / "run" / "tiles.npz")
-    labels = merged_labels(stored_patches(drive_dir), held["tiles"], merger_cfg)
+    labels = merged_labels(patches, held["tiles"], merger_cfg)
     mosaic = ev.Mosaic(held["tiles"])
     raw = mosaic.paste(held["tiles"], labels)
     truth = ev.truth_mosaic(drive_world(drive_dir), mosaic, held["tiles"])
-    observed = observed_area(run_cfg, mosaic, mapping_logs(drive_dir))
+    observed = observed_area(fleet_cfg, mosaic, mapping_logs(drive_dir) if logs is None else logs)
     return {"per_class": ev.map_quality(raw, truth, observed),
             "changed_cells": int(np.count_nonzero(raw != mosaic.paste(held["tiles"],
                                                                         held["raw"])))}

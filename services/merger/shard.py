@@ -30,7 +30,7 @@ Evidence rule (DESIGN.md: Map updating), per cell:
      A label needs its ballots to carry at least merger.min_votes (2) votes, else the cell is
      unknown (0).
   4. A ground-sign blob too small to be a sign (fewer than merger.min_sign_cells (30) cells,
-     parts up to SIGN_GAP_CELLS (0.3 m) apart joined; a painted arrow covers 100-150) is decided
+     parts up to BLOB_GAP_CELLS (0.3 m) apart joined; a painted arrow covers 100-150) is decided
      again by rule 3 with its sign ballots left out: the lane line a model half mistook for a
      sign, else unknown. A blob that touches the tile's edge is kept, as it may be part of a
      sign in the next tile: the rule stays a function of the tile's own ballots. The same for
@@ -431,30 +431,30 @@ def _decide(scores: np.ndarray, min_votes: int) -> np.ndarray:
 
 # cells of one class this close (0.3 m) belong to one marking (a sign's letters, arrow parts; a
 # stop line's worn pieces)
-SIGN_GAP_CELLS = 3
+BLOB_GAP_CELLS = 3
 
 
 def _small_blob_cells(observed: np.ndarray, winner: np.ndarray, cls: int,
                       min_cells: int) -> np.ndarray:
     """Rows of `observed` whose label `cls` lies in a blob of fewer than `min_cells` cells
-    (blobs joined across gaps of SIGN_GAP_CELLS) that does not touch the tile's edge: a blob cut
+    (blobs joined across gaps of BLOB_GAP_CELLS) that does not touch the tile's edge: a blob cut
     by the edge may be part of a marking in the neighbouring tile, so it is kept."""
-    sign = winner == cls
-    if min_cells <= 1 or not sign.any():
+    hit = winner == cls
+    if min_cells <= 1 or not hit.any():
         return np.empty(0, np.intp)
     mask = np.zeros(CELLS_PER_TILE, np.uint8)
-    mask[observed[sign]] = 1
+    mask[observed[hit]] = 1
     mask = mask.reshape(TILE_CELLS, TILE_CELLS)
-    k = 2 * SIGN_GAP_CELLS + 1
+    k = 2 * BLOB_GAP_CELLS + 1
     n, blob = cv2.connectedComponents(cv2.dilate(mask, np.ones((k, k), np.uint8)), connectivity=8)
     blob = blob.ravel()
-    area = np.bincount(blob[observed[sign]], minlength=n)
+    area = np.bincount(blob[observed[hit]], minlength=n)
     edge = np.zeros(n, bool)
     for side in (blob[:TILE_CELLS], blob[-TILE_CELLS:], blob[::TILE_CELLS],
                  blob[TILE_CELLS - 1::TILE_CELLS]):
         edge[side] = True
     drop = (area < min_cells) & ~edge
-    rows = np.flatnonzero(sign)
+    rows = np.flatnonzero(hit)
     return rows[drop[blob[observed[rows]]]]
 
 
