@@ -215,6 +215,9 @@ class LocalizerConfig:
     # sigma while an unlearnt scale error walks the position along the road (0: off; the
     # frozen scale above needs it)
     along_fix_sigma_m: float = 0.2
+    # ... and not trusted for settle_frames after a match shifted the pose beyond this squared
+    # Mahalanobis distance of what its covariance expected (chi-square, 2 dof; 20: p 5e-5; 0: off)
+    integrity_consistency_chi2: float = 20.0
     init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
     init_travel_m: float = 12.0  # metres of frames gathered before the coarse search
     init_frames: int = 30

@@ -35,6 +35,21 @@ def _clamp_scale(scale: float) -> float:
     return min(max(float(scale), 1.0 - SCALE_LIMIT), 1.0 + SCALE_LIMIT)
 
 
+def shift_consistency(shift: np.ndarray, expected_cov: np.ndarray) -> tuple[float, int]:
+    """(squared Mahalanobis distance, degrees of freedom) of a posterior's shift from its prior.
+
+    For a consistent filter the shift a measurement causes has the covariance prior minus
+    posterior (the variance the measurement removed): its squared distance under that
+    covariance is chi-square with as many degrees of freedom as the measurement observed (the
+    pseudo-inverse drops the directions it left unobserved, lane lines' along-road one). A
+    shift far beyond it says the filter's covariance was too small for where the matches put
+    the pose."""
+    w, v = np.linalg.eigh(0.5 * (expected_cov + expected_cov.T))
+    seen = w > 1e-8  # variance removed, m^2 (a tenth of a millimetre)
+    z = v.T @ np.asarray(shift, float)
+    return float(np.sum(z[seen] ** 2 / w[seen])), int(seen.sum())
+
+
 def _pose_residual(a, b):
     r = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
     if r.shape[0] == 3:
@@ -83,6 +98,7 @@ class PoseFilter:
         camera_yaw_sigma0_rad: float = math.radians(0.3),
         freeze_scale_on_reset: bool = LocalizerConfig.scale_frozen_at_start,
         scale_thaw_sigma_m: float = LocalizerConfig.scale_thaw_fix_sigma_m,
+        consistency_chi2: float = LocalizerConfig.integrity_consistency_chi2,
         inflate_after: int = 3,
         inflate_m: float = 0.15,
         inflate_yaw_rad: float = math.radians(0.3),
@@ -109,6 +125,11 @@ class PoseFilter:
         self.initialized = False
         self.rejections = 0
         self.last_nis = 0.0
+        # the last accepted posterior's position shift against what the covariance expects of
+        # it (squared Mahalanobis distance, degrees of freedom; shift_consistency), and the
+        # distance beyond which the filter is inconsistent (0: never)
+        self.last_shift_d2: tuple[float, int] = (0.0, 0)
+        self.consistency_chi2 = consistency_chi2
         self.freeze_scale_on_reset, self.scale_thaw_sigma_m = (freeze_scale_on_reset,
                                                                scale_thaw_sigma_m)
         self.scale_frozen = False
@@ -150,6 +171,11 @@ class PoseFilter:
     @property
     def odometry_scale(self) -> float:
         return float(self.ekf.x[3, 0])
+
+    @property
+    def shift_inconsistent(self) -> bool:
+        """The last accepted posterior moved the position beyond `consistency_chi2`."""
+        return 0 < self.consistency_chi2 < self.last_shift_d2[0]
 
     @property
     def scale_sigma(self) -> float:
@@ -249,6 +275,7 @@ class PoseFilter:
         P_new[3:, :3] = K @ Ppp_post
         P_new[:3, 3:] = P_new[3:, :3].T
         P_new[3:, 3:] = P[3:, 3:] - K @ P[:3, 3:] + K @ Ppp_post @ K.T
+        self.last_shift_d2 = shift_consistency(shift[:2], (Ppp - Ppp_post)[:2, :2])
         self.ekf.x = x.reshape(-1, 1)
         self.ekf.P = P_new
         return True

@@ -128,6 +128,8 @@ class Localizer:
         # accepted matches and their net correction since the (re)start or since markings came
         # back after a gap (Localizer._pulled_m)
         self.settled_matches, self.pull_since_gap = 0, np.zeros(2)
+        # frames since a match shifted the pose beyond what the filter's covariance allowed
+        self.since_inconsistent = self.settle_frames
 
     # -- verbs ------------------------------------------------------------------------------
 
@@ -206,7 +208,7 @@ class Localizer:
         # an unresolved ambiguity is not a trusted pose, nor one whose protection level
         # exceeds the alert limit
         integrity_sigma_m = self.integrity_sigma_m
-        trusted = (self.ekf.ok and not self.rivals
+        trusted = (self.ekf.ok and not self.rivals and self._consistent()
                    and self.integrity_k * integrity_sigma_m <= self.alert_limit_m)
         if trusted:  # what the matches pull from here on may be the scale's doing
             self.ekf.scale_frozen = False
@@ -225,6 +227,9 @@ class Localizer:
         if (accepted and self.unmatched_frames >= self.settle_frames  # markings are back
                 and self.settled_matches >= self.reacquire_settle_frames):  # (else settling)
             self.settled_matches, self.pull_since_gap = 0, np.zeros(2)
+        self.since_inconsistent += 1
+        if accepted and self.ekf.shift_inconsistent:
+            self.since_inconsistent = 0
         correction = self.ekf.pose[:2] - predicted
         self.settled_matches += int(accepted)
         self.pull_since_gap = self.pull_since_gap + correction
@@ -263,6 +268,14 @@ class Localizer:
         if self.along_fix_sigma_m > 0:
             scaled = self.ekf.scale_sigma * (self.travel_m - self.sure_fix_travel_m)
         return math.hypot(self.ekf.position_sigma_m, held, unmatched, self._pulled_m(), scaled)
+
+    def _consistent(self) -> bool:
+        """No match within the last `settle_frames` frames moved the pose beyond what the
+        filter's covariance expected of it (PoseFilter.shift_inconsistent). A filter whose
+        sigma reads centimetres while the dashes keep pulling it a decimetre a frame is half a
+        metre off along the road (its scale learnt wrong at the start); the pulls of one second
+        add up to less than that, so _pulled_m cannot tell."""
+        return self.since_inconsistent >= self.settle_frames
 
     def _pulled_m(self) -> float:
         """How far the matches moved the filter lately: over the last `settle_frames`, and,
@@ -602,6 +615,7 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         max_position_sigma_m=lc.max_position_sigma_m,
         freeze_scale_on_reset=lc.scale_frozen_at_start,
         scale_thaw_sigma_m=lc.scale_thaw_fix_sigma_m,
+        consistency_chi2=lc.integrity_consistency_chi2,
     )
     search = CoarseSearch(radius_m=lc.init_radius_m, seed=seed)
     return Localizer(

@@ -420,3 +420,57 @@ def test_a_start_on_periodic_dashes_begins_at_the_dash_the_gnss_points_to(seed):
     replay(loc, streams, lambda i: frames[i], on_estimate)
     assert start and np.hypot(*start["off"]) < 0.3
     assert start["rivals"] >= 1 and not start["ok"]
+
+
+def test_a_posterior_shift_is_judged_against_the_variance_its_measurement_removed(rng):
+    """A match drawn from what the filter expects shifts its pose by chi-square(2) on average
+    (prior minus posterior covariance); one that pulls it 0.3 m while the filter's sigma reads
+    2 cm is far beyond; a lane-lines-only match leaves the along-road direction out (1 dof)."""
+    prior = np.diag([0.05**2, 0.03**2, 1e-5])
+    d2s = []
+    for _ in range(400):
+        f = PoseFilter()
+        f.reset(np.zeros(3), prior)
+        info = np.diag([1 / 0.04**2, 1 / 0.02**2, 1e5])
+        truth = rng.multivariate_normal(np.zeros(3), prior)
+        z = truth + rng.multivariate_normal(np.zeros(3), np.linalg.inv(info))
+        post = np.linalg.inv(np.linalg.inv(prior) + info) @ (info @ z)  # the fused pose
+        assert f.update_posterior(post, info)
+        d2, dof = f.last_shift_d2
+        assert dof == 2
+        d2s.append(d2)
+    assert 1.6 < np.mean(d2s) < 2.4
+    f = PoseFilter()
+    f.reset(np.zeros(3), np.diag([0.02**2, 0.02**2, 1e-5]))
+    info = np.diag([1 / 0.05**2, 1 / 0.05**2, 1e5])
+    assert f.update_posterior(np.array([0.05, 0.0, 0.0]), info)  # within the 16.27 gate
+    assert f.last_shift_d2[0] > 20.0
+    f.reset(np.zeros(3), np.diag([0.02**2, 0.02**2, 1e-5]))
+    assert f.update_posterior(np.array([0.0, 0.01, 0.0]), np.diag([0.0, 1 / 0.02**2, 1e5]))
+    assert f.last_shift_d2[1] == 1
+
+
+def test_a_pose_pulled_beyond_its_covariance_is_not_ok_for_a_second(road_cache):
+    """Matches that each pull the pose 5 cm ahead while the filter's sigma reads 2 cm (its
+    scale learnt wrong, its along-road position half a metre behind): the pose is not trusted
+    until settle_frames frames after the last such pull (not without consistency_chi2)."""
+    from services.localizer.icp import IcpResult
+
+    def pulled(consistency_chi2):
+        loc = get_localizer(LocalizerConfig(integrity_consistency_chi2=consistency_chi2),
+                            road_cache)
+        loc.ekf.reset(np.array([0.0, 28.25, 0.0]), np.diag([0.02**2, 0.02**2, 1e-6]))
+        info = np.diag([1 / 0.05**2, 1 / 0.05**2, 1e5])
+        consistent = []
+        for k in range(25):
+            pose = loc.ekf.pose + ([0.05, 0.0, 0.0] if k < 5 else 0.0)
+            res = IcpResult(pose, np.linalg.inv(info), 500, 500, 0.02, False,
+                            np.array([1.0, 0.0, 0.0]), np.zeros(3), 5, information=info)
+            assert loc._fuse(res)
+            consistent.append(loc._consistent())
+        return consistent
+
+    on, off = pulled(20.0), pulled(0.0)
+    assert all(off)
+    settle = LocalizerConfig.settle_frames
+    assert not any(on[:4 + settle]) and all(on[4 + settle:])
