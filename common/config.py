@@ -268,7 +268,9 @@ class VehicleConfig:
     # a cell's paint of a class seen in fewer frames than this is not voted (sealed out): one
     # frame's hallucination never becomes a marking (1: off)
     min_paint_frames: int = 2
-    min_symbol_frames: int = 3  # ... for stop lines and ground signs
+    # ... for stop lines and ground signs: 2 with merger.min_stop_cells below (the suite's stop
+    # recall min / median 0.57 / 0.84 -> 0.67 / 0.88 at a like precision; docs/RESULTS.md)
+    min_symbol_frames: int = 2
     # a ground sign on a cell that this many frames saw as lane line is not voted (0: off):
     # the model calls pieces of thick lane lines sign (seed 0 / 1 Karlsruhe demo drives
     # replayed: false sign cells 55 / 65 -> 29 / 33, other classes unchanged)
@@ -287,9 +289,8 @@ class MergerConfig:
     min_sign_cells: int = 30
     # ... and a stop-line blob of fewer cells without its stop-line ballots (0 or 1: off). A stop
     # line spans a lane, 0.3-0.5 m x 3 m (90-150 cells); the model's stray stop paint comes in
-    # pieces of a few. Off: at 20 the map's stop lines are truer, but one suite drive's car
-    # broke integrity on it (docs/RESULTS.md, 2026-12-07)
-    min_stop_cells: int = 0
+    # pieces of a few
+    min_stop_cells: int = 20
     # a traversal out of every cell's window is dropped from memory once it is this much older
     # than the tile's window-th newest traversal (services/merger/shard.py; < 0: never)
     retire_after_s: float = 3600.0
