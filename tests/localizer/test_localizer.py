@@ -474,3 +474,30 @@ def test_a_pose_pulled_beyond_its_covariance_is_not_ok_for_a_second(road_cache):
     assert all(off)
     settle = LocalizerConfig.settle_frames
     assert not any(on[:4 + settle]) and all(on[4 + settle:])
+
+
+def test_pulls_before_and_after_a_gap_while_settling_do_not_cancel(road_cache):
+    """Still settling, matches pull the pose 0.35 m back, a gap of settle_frames without a
+    match, then matches pull it 0.5 m forward: the net pull since the start is 0.15 m, but the
+    pull since markings came back, 0.5 m, is what the integrity flag counts."""
+    from services.localizer.icp import IcpResult
+
+    loc = get_localizer(LocalizerConfig(), road_cache)
+    loc.ekf.reset(np.array([0.0, 28.25, 0.0]), np.diag([0.5**2, 0.05**2, 1e-6]))
+    info = np.diag([1 / 0.1**2, 1e4, 1e6])
+
+    def pull(dx):
+        pose = loc.ekf.pose + [dx, 0.0, 0.0]
+        res = IcpResult(pose, np.linalg.inv(info), 500, 500, 0.02, False,
+                        np.array([1.0, 0.0, 0.0]), np.zeros(3), 5, information=info)
+        assert loc._fuse(res)
+
+    for _ in range(14):
+        pull(-0.025)
+    for _ in range(LocalizerConfig.settle_frames):
+        assert not loc._fuse(None)
+    for _ in range(20):  # more than the last settle_frames' corrections see
+        pull(0.025)
+    assert loc.settled_matches < LocalizerConfig.reacquire_settle_frames
+    assert float(np.hypot(*loc.pull_since_gap)) < 0.2
+    assert loc._pulled_m() > 0.45
