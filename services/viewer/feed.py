@@ -33,6 +33,9 @@ class LiveFeed:
         # tokens as they come and go (a small demo's vehicle lives 2 s, under one refresh)
         self._alive_lock = threading.Lock()
         self._alive: dict[str, set[str]] = {}
+        # events that arrive while a liveliness snapshot is in flight, replayed onto it (None:
+        # no snapshot in flight): a token dropped then would else show alive till the next one
+        self._journal: list[tuple[bool, str, str]] | None = None
         self.alive_sub = session.liveliness().declare_subscriber(
             keys.alive_all(), self._on_alive, history=True)
         self.thread = threading.Thread(target=self._refresh_loop, name="viewer-refresh",
@@ -44,7 +47,8 @@ class LiveFeed:
 
     def close(self) -> None:
         self._stop.set()
-        self.thread.join(timeout=10.0)
+        if self.thread.is_alive():  # (never started: a feed refreshed by hand)
+            self.thread.join(timeout=10.0)
         for entity in (self.token, self.tile_sub, self.pose_sub, self.alive_sub):
             try:
                 entity.undeclare()
@@ -62,13 +66,22 @@ class LiveFeed:
             role, ident = keys.parse_alive(str(sample.key_expr))
         except CodecError:
             return
+        event = (sample.kind != SampleKind.DELETE, role, ident)
         with self._alive_lock:
+            if self._journal is not None:
+                self._journal.append(event)
+            self._apply_alive([event])
+
+    def _apply_alive(self, events) -> None:
+        """(alive, role, ident) events onto the held set, and the set into the state; under
+        the lock."""
+        for up, role, ident in events:
             ids = self._alive.setdefault(role, set())
-            if sample.kind == SampleKind.DELETE:
-                ids.discard(ident)
-            else:
+            if up:
                 ids.add(ident)
-            self.state.put_alive({r: sorted(i) for r, i in sorted(self._alive.items()) if i})
+            else:
+                ids.discard(ident)
+        self.state.put_alive({r: sorted(i) for r, i in sorted(self._alive.items()) if i})
 
     def _on_pose(self, sample) -> None:
         try:
@@ -95,10 +108,17 @@ class LiveFeed:
         """Shards' counters and tile lists, liveliness, and every listed tile the state lacks
         or holds an older version of (a publication missed, or sent before the viewer)."""
         owners = self.refresh_stats()
-        alive = fleet.alive(self.session, self.timeout_s)  # the snapshot settles missed events
         with self._alive_lock:
-            self._alive = {role: set(ids) for role, ids in alive.items()}
-            self.state.put_alive(alive)
+            self._journal = []
+        alive = None
+        try:
+            alive = fleet.alive(self.session, self.timeout_s)  # settles missed events
+        finally:
+            with self._alive_lock:
+                journal, self._journal = self._journal, None
+                if alive is not None:
+                    self._alive = {role: set(ids) for role, ids in alive.items()}
+                    self._apply_alive(journal)  # what changed while it was taken
         held = self.state.versions()
         for tile, shard in sorted(owners.items()):
             if self._stop.is_set():
