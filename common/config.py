@@ -218,6 +218,9 @@ class LocalizerConfig:
     # ... and not trusted for settle_frames after a match shifted the pose beyond this squared
     # Mahalanobis distance of what its covariance expected (chi-square, 2 dof; 20: p 5e-5; 0: off)
     integrity_consistency_chi2: float = 20.0
+    # ... and such a match teaches the odometry scale nothing (its pose still moves): dash ends
+    # that pull a pose 0.5 m off a few centimetres a frame swung a start's scale 3 % wrong
+    scale_skips_inconsistent: bool = True
     init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
     init_travel_m: float = 12.0  # metres of frames gathered before the coarse search
     init_frames: int = 30

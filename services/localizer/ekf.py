@@ -99,6 +99,7 @@ class PoseFilter:
         freeze_scale_on_reset: bool = LocalizerConfig.scale_frozen_at_start,
         scale_thaw_sigma_m: float = LocalizerConfig.scale_thaw_fix_sigma_m,
         consistency_chi2: float = LocalizerConfig.integrity_consistency_chi2,
+        scale_skips_inconsistent: bool = LocalizerConfig.scale_skips_inconsistent,
         inflate_after: int = 3,
         inflate_m: float = 0.15,
         inflate_yaw_rad: float = math.radians(0.3),
@@ -130,6 +131,8 @@ class PoseFilter:
         # distance beyond which the filter is inconsistent (0: never)
         self.last_shift_d2: tuple[float, int] = (0.0, 0)
         self.consistency_chi2 = consistency_chi2
+        # ... and whether such a shift moves the odometry scale (False: it does, as any other)
+        self.scale_skips_inconsistent = scale_skips_inconsistent
         self.freeze_scale_on_reset, self.scale_thaw_sigma_m = (freeze_scale_on_reset,
                                                                scale_thaw_sigma_m)
         self.scale_frozen = False
@@ -264,6 +267,9 @@ class PoseFilter:
         self.rejections = 0
         Ppp_post = np.linalg.inv(np.linalg.inv(Ppp) + information)
         Ppp_post = 0.5 * (Ppp_post + Ppp_post.T)
+        self.last_shift_d2 = shift_consistency(shift[:2], (Ppp - Ppp_post)[:2, :2])
+        if self.scale_skips_inconsistent and self.shift_inconsistent:
+            self._decouple_scale()  # a pull the covariance cannot explain is not the wheel's
         K = P[3:, :3] @ np.linalg.inv(Ppp)  # regression of the scale on the pose
         x = self.ekf.x.reshape(-1).copy()
         x[3:] = x[3:] + K @ shift
@@ -275,7 +281,6 @@ class PoseFilter:
         P_new[3:, :3] = K @ Ppp_post
         P_new[:3, 3:] = P_new[3:, :3].T
         P_new[3:, 3:] = P[3:, 3:] - K @ P[:3, 3:] + K @ Ppp_post @ K.T
-        self.last_shift_d2 = shift_consistency(shift[:2], (Ppp - Ppp_post)[:2, :2])
         self.ekf.x = x.reshape(-1, 1)
         self.ekf.P = P_new
         return True
@@ -321,13 +326,16 @@ class PoseFilter:
             self.scale_frozen = False
 
     def _decouple_frozen_scale(self) -> None:
-        """A frozen scale learns nothing from the next measurement: its correlation with the
-        rest of the state (what the motion since the last measurement built) is dropped, its
-        variance kept."""
+        """A frozen scale learns nothing from the next measurement."""
         if self.scale_frozen:
-            P = self.ekf.P
-            P[3, :3] = P[:3, 3] = 0.0
-            P[3, 4:] = P[4:, 3] = 0.0
+            self._decouple_scale()
+
+    def _decouple_scale(self) -> None:
+        """The scale's correlation with the rest of the state (what the motion since the last
+        measurement built) dropped, its variance kept: the next measurement moves it not."""
+        P = self.ekf.P
+        P[3, :3] = P[:3, 3] = 0.0
+        P[3, 4:] = P[4:, 3] = 0.0
 
     def _update(self, z, H, R) -> bool:
         if not self.initialized:

@@ -624,6 +624,7 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         freeze_scale_on_reset=lc.scale_frozen_at_start,
         scale_thaw_sigma_m=lc.scale_thaw_fix_sigma_m,
         consistency_chi2=lc.integrity_consistency_chi2,
+        scale_skips_inconsistent=lc.scale_skips_inconsistent,
     )
     search = CoarseSearch(radius_m=lc.init_radius_m, seed=seed)
     return Localizer(

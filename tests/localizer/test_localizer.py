@@ -501,3 +501,25 @@ def test_pulls_before_and_after_a_gap_while_settling_do_not_cancel(road_cache):
     assert loc.settled_matches < LocalizerConfig.reacquire_settle_frames
     assert float(np.hypot(*loc.pull_since_gap)) < 0.2
     assert loc._pulled_m() > 0.45
+
+
+def test_a_pull_beyond_the_covariance_moves_the_pose_but_not_the_scale():
+    """After 5 m of driving the scale and the along-road position are correlated: a match
+    that pulls the pose 0.25 m, far more than the variance it removes allows, moves the pose,
+    and the scale only where scale_skips_inconsistent is off; a pull within it moves both."""
+
+    def pulled(dx, skips):
+        f = PoseFilter(scale_skips_inconsistent=skips, freeze_scale_on_reset=False)
+        f.reset(np.zeros(3), np.diag([0.03**2, 0.03**2, 1e-6]))
+        for _ in range(5):
+            f.predict(10.0, 0.0, 0.1)
+        info = np.diag([1 / 0.1**2, 1 / 0.1**2, 1e6])
+        assert f.update_posterior(f.pose + [dx, 0.0, 0.0], info)
+        return f
+
+    guarded, learning = pulled(0.25, True), pulled(0.25, False)
+    assert guarded.shift_inconsistent and learning.shift_inconsistent
+    assert guarded.odometry_scale == 1.0 and learning.odometry_scale > 1.01
+    assert guarded.pose[0] == pytest.approx(learning.pose[0])
+    consistent = pulled(0.05, True)
+    assert not consistent.shift_inconsistent and consistent.odometry_scale > 1.001
