@@ -186,6 +186,10 @@ class LocalizerConfig:
     # integrity there
     scale_frozen_at_start: bool = True
     scale_thaw_fix_sigma_m: float = 0.1
+    # ... and, frozen, its covariance with the pose is kept right through every update (the
+    # Schmidt-Kalman "consider" form), so the match that thaws it learns from all the travel
+    # since the start, not the last frame's (False: dropped at each update)
+    scale_frozen_considered: bool = True
     yaw_rate_sigma_dps: float = 0.3
     max_position_sigma_m: float = 1.0  # the filter trusts itself below this (re-init above)
     # integrity: a pose is reported ok only while its protection level (integrity_k x the

@@ -100,6 +100,7 @@ class PoseFilter:
         scale_thaw_sigma_m: float = LocalizerConfig.scale_thaw_fix_sigma_m,
         consistency_chi2: float = LocalizerConfig.integrity_consistency_chi2,
         scale_skips_inconsistent: bool = LocalizerConfig.scale_skips_inconsistent,
+        frozen_scale_considered: bool = LocalizerConfig.scale_frozen_considered,
         inflate_after: int = 3,
         inflate_m: float = 0.15,
         inflate_yaw_rad: float = math.radians(0.3),
@@ -133,6 +134,8 @@ class PoseFilter:
         self.consistency_chi2 = consistency_chi2
         # ... and whether such a shift moves the odometry scale (False: it does, as any other)
         self.scale_skips_inconsistent = scale_skips_inconsistent
+        # a frozen scale keeps its covariance with the pose (False: dropped at each update)
+        self.frozen_scale_considered = frozen_scale_considered
         self.freeze_scale_on_reset, self.scale_thaw_sigma_m = (freeze_scale_on_reset,
                                                                scale_thaw_sigma_m)
         self.scale_frozen = False
@@ -255,7 +258,9 @@ class PoseFilter:
         pose relative to the prediction's covariance."""
         if not self.initialized:
             return False
-        self._decouple_frozen_scale()
+        considered = self.scale_frozen and self.frozen_scale_considered
+        if not considered:
+            self._decouple_frozen_scale()
         P = self.ekf.P
         Ppp = P[:3, :3]
         shift = _pose_residual(pose, self.ekf.x.reshape(-1)[:3])
@@ -272,7 +277,7 @@ class PoseFilter:
             self._decouple_scale()  # a pull the covariance cannot explain is not the wheel's
         K = P[3:, :3] @ np.linalg.inv(Ppp)  # regression of the scale on the pose
         x = self.ekf.x.reshape(-1).copy()
-        x[3:] = x[3:] + K @ shift
+        x[3:] = x[3:] + (K * [[0.0], [1.0], [1.0]] if considered else K) @ shift
         x[:3] = np.asarray(pose, float)
         x[2] = float(wrap_angle(x[2]))
         x[3] = _clamp_scale(x[3])
@@ -281,6 +286,10 @@ class PoseFilter:
         P_new[3:, :3] = K @ Ppp_post
         P_new[:3, 3:] = P_new[3:, :3].T
         P_new[3:, 3:] = P[3:, 3:] - K @ P[:3, 3:] + K @ Ppp_post @ K.T
+        if considered:  # the scale's own variance and its covariance with the others stand
+            gain = np.eye(3) - Ppp_post @ np.linalg.inv(Ppp)  # of the pose, shift = gain @ z
+            P_new[3, 3] = P[3, 3]
+            P_new[3, 4:] = P_new[4:, 3] = P[3, 4:] - P[3, :3] @ gain.T @ K[1:].T
         self.ekf.x = x.reshape(-1, 1)
         self.ekf.P = P_new
         return True
@@ -325,6 +334,20 @@ class PoseFilter:
         if sigma_m <= self.scale_thaw_sigma_m:
             self.scale_frozen = False
 
+    def _considered_update(self, z, H, R) -> None:
+        """A linear update that leaves the frozen scale's estimate and variance as they are
+        but keeps its covariance with the rest of the state right (the Schmidt-Kalman "consider"
+        form, Joseph-stabilized): the drift its error builds stays known, for the match that
+        thaws it to learn from."""
+        P = self.ekf.P
+        y, S, _ = self.innovation(z, H, R)
+        gain = P @ H.T @ np.linalg.inv(S)
+        gain[3] = 0.0
+        self.ekf.x = (self.ekf.x.reshape(-1) + gain @ y).reshape(-1, 1)
+        self.ekf.x[2, 0] = float(wrap_angle(self.ekf.x[2, 0]))
+        keep = np.eye(len(P)) - gain @ H
+        self.ekf.P = keep @ P @ keep.T + gain @ R @ gain.T
+
     def _decouple_frozen_scale(self) -> None:
         """A frozen scale learns nothing from the next measurement."""
         if self.scale_frozen:
@@ -340,7 +363,9 @@ class PoseFilter:
     def _update(self, z, H, R) -> bool:
         if not self.initialized:
             return False
-        self._decouple_frozen_scale()
+        considered = self.scale_frozen and self.frozen_scale_considered
+        if not considered:
+            self._decouple_frozen_scale()
         _, _, d2 = self.innovation(z, H, R)
         self.last_nis = d2
         pose = len(z) == 3
@@ -354,6 +379,9 @@ class PoseFilter:
         self.rejections = 0
         self.pose_rejections = 0 if pose else self.pose_rejections
         self.gnss_rejections = self.gnss_rejections if pose else 0
+        if considered:
+            self._considered_update(z, H, R)
+            return True
         self.ekf.update(
             z.reshape(-1, 1),
             lambda _x: H,

@@ -625,6 +625,7 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         scale_thaw_sigma_m=lc.scale_thaw_fix_sigma_m,
         consistency_chi2=lc.integrity_consistency_chi2,
         scale_skips_inconsistent=lc.scale_skips_inconsistent,
+        frozen_scale_considered=lc.scale_frozen_considered,
     )
     search = CoarseSearch(radius_m=lc.init_radius_m, seed=seed)
     return Localizer(

@@ -523,3 +523,29 @@ def test_a_pull_beyond_the_covariance_moves_the_pose_but_not_the_scale():
     assert guarded.pose[0] == pytest.approx(learning.pose[0])
     consistent = pulled(0.05, True)
     assert not consistent.shift_inconsistent and consistent.odometry_scale > 1.001
+
+
+def test_a_frozen_scale_keeps_its_covariance_so_the_thawing_fix_learns_the_whole_travel():
+    """50 m of lane-line matches (nothing along the road) with the scale frozen: considered,
+    the position sigma along the road carries the scale's 1.5 % over the 50 m, and once thawed
+    a stop line 0.25 m ahead reads as scale over all of it (1 + 0.25 / 51 m); with the
+    covariance dropped at each update the sigma forgets the drift and the fix teaches little."""
+
+    def run(considered):
+        f = PoseFilter(freeze_scale_on_reset=True, frozen_scale_considered=considered)
+        f.reset(np.zeros(3), np.diag([0.05**2, 0.05**2, 1e-6]))
+        for _ in range(50):
+            f.predict(10.0, 0.0, 0.1)
+            assert f.update_posterior(f.pose.copy(), np.diag([1e-6, 1 / 0.05**2, 1e4]))
+        assert f.odometry_scale == 1.0 and f.scale_frozen
+        sigma = f.position_sigma_m
+        f.scale_frozen = False
+        f.predict(10.0, 0.0, 0.1)
+        assert f.update_posterior(f.pose + [0.25, 0.0, 0.0],
+                                  np.diag([1 / 0.05**2, 1 / 0.05**2, 1e4]))
+        return sigma, f
+
+    (sigma, considered), (sigma_dropped, dropped) = run(True), run(False)
+    assert sigma > 0.7 > 0.2 > sigma_dropped
+    assert considered.odometry_scale == pytest.approx(1 + 0.25 / 51, rel=0.1)
+    assert considered.scale_sigma < 0.005 < 0.01 < dropped.scale_sigma
