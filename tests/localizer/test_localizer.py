@@ -476,6 +476,36 @@ def test_a_pose_pulled_beyond_its_covariance_is_not_ok_for_a_second(road_cache):
     assert not any(on[:4 + settle]) and all(on[4 + settle:])
 
 
+def test_a_match_whose_paint_misses_the_map_is_not_ok_for_a_second(road_cache, rng):
+    """A match the road surface's points made, with its frame's marking points off the map's
+    markings (held-out Karlsruhe s433: ok while 1.7-6.6 m off, none of a frame's marking points
+    on the map's): the pose is not trusted until settle_frames frames later (never off with
+    integrity_min_paint_fit 0)."""
+    from services.localizer.icp import IcpResult
+
+    true = np.array([62.0, 28.25, 0.02])  # stop line, crosswalk and dashes in view
+    pts, cls = frame_points(road_cache, true, rng)
+
+    def at(pose):
+        return IcpResult(np.asarray(pose, float), np.eye(3) * 1e-4, 500, 500, 0.02, False,
+                         np.array([1.0, 0.0, 0.0]), np.zeros(3), 5)
+
+    def fits_after_a_miss(min_fit):
+        loc = get_localizer(LocalizerConfig(integrity_min_paint_fit=min_fit), road_cache)
+        loc._check_paint(at(true), pts, cls)
+        assert loc._paint_fits()
+        loc._check_paint(at(true + [1.3, 1.2, 0.0]), pts, cls)  # the paint off the lines
+        fits = []
+        for _ in range(LocalizerConfig.settle_frames + 1):
+            fits.append(loc._paint_fits())
+            loc._check_paint(at(true + [0.1, -0.1, 0.0]), pts, cls)  # within the tolerance
+        return fits
+
+    settle = LocalizerConfig.settle_frames
+    assert fits_after_a_miss(0.3) == [False] * settle + [True]
+    assert all(fits_after_a_miss(0.0))
+
+
 def test_pulls_before_and_after_a_gap_while_settling_do_not_cancel(road_cache):
     """Still settling, matches pull the pose 0.35 m back, a gap of settle_frames without a
     match, then matches pull it 0.5 m forward: the net pull since the start is 0.15 m, but the
