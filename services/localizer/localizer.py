@@ -272,21 +272,20 @@ class Localizer:
         return math.hypot(self.ekf.position_sigma_m, held, unmatched, self._pulled_m(), scaled)
 
     def _check_paint(self, result: IcpResult | None, pts: np.ndarray, cls: np.ndarray) -> None:
-        """Count the frames since an accepted match left its frame's marking points off the
-        map's markings: fewer than `min_paint_fit` of them within `paint_fit_tol_m` of a cell of
-        their class at the matched pose."""
-        self.since_unfit += 1
+        """Count the accepted matches that left their frame's marking points on the map's
+        markings since one did not (fewer than `min_paint_fit` of them within `paint_fit_tol_m`
+        of a cell of their class at the matched pose). Frames without a match count for
+        nothing: dead reckoning from a pose no marking confirmed confirms nothing."""
         if result is None or self.min_paint_fit <= 0:
             return
         paint = np.asarray(cls) >= Cls.LANE_LINE
         fit = fine_overlap(pts[paint], class_slots(cls[paint]), result.pose, self.cache,
                            tol_m=self.paint_fit_tol_m)
-        if fit < self.min_paint_fit:
-            self.since_unfit = 0
+        self.since_unfit = self.since_unfit + 1 if fit >= self.min_paint_fit else 0
 
     def _paint_fits(self) -> bool:
-        """No accepted match within the last `settle_frames` left its frame's markings off the
-        map's (_check_paint). Such a match was made by the road surface's points, which fit
+        """`settle_frames` accepted matches have left their frames' markings on the map's since
+        one did not (_check_paint). Such a match was made by the road surface's points, which fit
         anywhere along a road: held-out Karlsruhe s433 was ok 1.7-6.6 m off with none of a
         frame's 133-3372 marking points on the map's markings."""
         return self.since_unfit >= self.settle_frames

@@ -476,11 +476,11 @@ def test_a_pose_pulled_beyond_its_covariance_is_not_ok_for_a_second(road_cache):
     assert not any(on[:4 + settle]) and all(on[4 + settle:])
 
 
-def test_a_match_whose_paint_misses_the_map_is_not_ok_for_a_second(road_cache, rng):
+def test_a_match_whose_paint_misses_the_map_is_not_ok_until_matches_fit_again(road_cache, rng):
     """A match the road surface's points made, with its frame's marking points off the map's
     markings (held-out Karlsruhe s433: ok while 1.7-6.6 m off, none of a frame's marking points
-    on the map's): the pose is not trusted until settle_frames frames later (never off with
-    integrity_min_paint_fit 0)."""
+    on the map's): the pose is not trusted until settle_frames matches have fitted since, and
+    frames without a match do not count (never off with integrity_min_paint_fit 0)."""
     from services.localizer.icp import IcpResult
 
     true = np.array([62.0, 28.25, 0.02])  # stop line, crosswalk and dashes in view
@@ -495,6 +495,8 @@ def test_a_match_whose_paint_misses_the_map_is_not_ok_for_a_second(road_cache, r
         loc._check_paint(at(true), pts, cls)
         assert loc._paint_fits()
         loc._check_paint(at(true + [1.3, 1.2, 0.0]), pts, cls)  # the paint off the lines
+        for _ in range(2 * LocalizerConfig.settle_frames):  # dead reckoning confirms nothing
+            loc._check_paint(None, pts, cls)
         fits = []
         for _ in range(LocalizerConfig.settle_frames + 1):
             fits.append(loc._paint_fits())
