@@ -142,6 +142,7 @@ def fine_overlap(points_v, slots, pose, cache, tol_m: float = 0.15) -> float:
     """Fraction of points within tol of a map cell of their class at pose."""
     from services.localizer.icp import _to_world
 
-    nearest, valid = cache.nearest(_to_world(np.asarray(points_v, float), pose), slots)
-    d = np.hypot(*(_to_world(np.asarray(points_v, float), pose) - nearest).T)
+    world = _to_world(np.asarray(points_v, float), pose)
+    nearest, valid = cache.nearest(world, slots)
+    d = np.hypot(*(world - nearest).T)
     return float(np.mean(valid & (d < tol_m))) if len(d) else 0.0

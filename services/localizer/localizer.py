@@ -278,7 +278,7 @@ class Localizer:
         nothing: dead reckoning from a pose no marking confirmed confirms nothing."""
         if result is None or self.min_paint_fit <= 0:
             return
-        paint = np.asarray(cls) >= Cls.LANE_LINE
+        paint = _is_marking(cls)
         fit = fine_overlap(pts[paint], class_slots(cls[paint]), result.pose, self.cache,
                            tol_m=self.paint_fit_tol_m)
         self.since_unfit = self.since_unfit + 1 if fit >= self.min_paint_fit else 0
@@ -576,8 +576,12 @@ class Localizer:
             self.submap.clear()
 
 
+def _is_marking(classes: np.ndarray) -> np.ndarray:
+    return np.asarray(classes) >= Cls.LANE_LINE
+
+
 def _markings(classes: np.ndarray) -> int:
-    return int(np.count_nonzero(np.asarray(classes) >= Cls.LANE_LINE))
+    return int(np.count_nonzero(_is_marking(classes)))
 
 
 def _distinct(ranked):
