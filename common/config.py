@@ -225,13 +225,16 @@ class LocalizerConfig:
     # ... and such a match teaches the odometry scale nothing (its pose still moves): dash ends
     # that pull a pose 0.5 m off a few centimetres a frame swung a start's scale 3 % wrong
     scale_skips_inconsistent: bool = True
-    # ... and not trusted after an accepted match left fewer than this share of its frame's
-    # marking points within integrity_paint_fit_tol_m of the map's markings of their class,
-    # until settle_frames matches have fitted: road points fit anywhere along a road, and a
-    # match they made can be metres off with a covariance of centimetres (0: off). A pose half
-    # a metre off leaves its paint that far from the map's; 0.3 m keeps far points' noise in.
+    # ... and not trusted while an accepted match leaves fewer than this share of its frame's
+    # marking points within integrity_paint_fit_tol_m of the map's markings (of any class):
+    # road points fit anywhere along a road, and a match they made can be metres off with a
+    # covariance of centimetres (0: off). A pose half a metre off leaves its paint that far
+    # from the map's; 0.3 m keeps far points' noise in. Trusted again once the latest match
+    # fits and at most integrity_paint_misses of the last settle_frames did not (a frame of
+    # imagined paint now and then, not a run of them)
     integrity_min_paint_fit: float = 0.3
     integrity_paint_fit_tol_m: float = 0.3
+    integrity_paint_misses: int = 1
     init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
     init_travel_m: float = 12.0  # metres of frames gathered before the coarse search
     init_frames: int = 30

@@ -69,7 +69,8 @@ def format_summary(s: dict) -> str:
     lines.append(f"  availability min {_f(s['availability_0_5m']['min'])}, convergence max "
                  f"{_f(s['convergence_s']['max'])} s, integrity violations "
                  f"{s['integrity_violations']}, frames without markings "
-                 f"{_f(s['frames_without_markings'])}")
+                 f"{_f(s['frames_without_markings'])}, said ok min "
+                 f"{_f(s['ok_share']['min'])} median {_f(s['ok_share']['median'])}")
     since = s.get("from_first_marking")
     if since:
         lines.append(f"  from the first marking on, converged or not: x median "

@@ -58,10 +58,14 @@ def _stats(values: np.ndarray) -> dict:
     return {"mean": float(v.mean()), "p90": float(np.percentile(v, 90)), "max": float(v.max())}
 
 
-def _over(err: dict, use: np.ndarray) -> dict:
+def _over(err: dict, use: np.ndarray, ok: np.ndarray) -> dict:
+    """Statistics over the frames `use`: their count, availability, the share the car said
+    ok (what a user may act on; the integrity checks' price), and each error's mean / p90 /
+    max."""
     pos = np.where(np.isfinite(err["position_m"]), err["position_m"], np.inf)
     out = {"frames": int(use.sum()),
-           "availability_0_5m": float(np.mean(pos[use] < THRESHOLD_M)) if use.any() else None}
+           "availability_0_5m": float(np.mean(pos[use] < THRESHOLD_M)) if use.any() else None,
+           "ok_share": float(np.mean(ok[use])) if use.any() else None}
     out.update({k: _stats(err[k][use]) for k in STATS})
     return out
 
@@ -83,6 +87,7 @@ def score_frames(t_ns: np.ndarray, est: np.ndarray, ok: np.ndarray, truth: np.nd
     k = convergence_index(np.where(np.isfinite(pos), pos, np.inf), t_s, THRESHOLD_M, HOLD_S)
     convergence = (None if k is None or first_view is None
                    else max(0.0, float(t_s[k] - t_s[first_view])))
+    ok = np.asarray(ok, bool)
     violations = ok & np.isfinite(pos) & (pos > THRESHOLD_M)
     after = np.ones(len(pos), bool)
     if k is not None:
@@ -91,11 +96,11 @@ def score_frames(t_ns: np.ndarray, est: np.ndarray, ok: np.ndarray, truth: np.nd
     if first_view is not None:
         since_view[first_view:] = True
     return {
-        "markings_in_view": _over(err, in_view & after),
-        "all_frames": _over(err, after),
+        "markings_in_view": _over(err, in_view & after, ok),
+        "all_frames": _over(err, after, ok),
         # converged or not: a late convergence leaves a start metres off out of the figures
         # above, and one found sooner counts its settling in (docs/RESULTS.md, 2026-12-07)
-        "from_first_marking": _over(err, in_view & since_view),
+        "from_first_marking": _over(err, in_view & since_view, ok),
         "frames": int(len(pos)),
         "frames_without_markings": int((~in_view).sum()),
         "integrity_violations": int(violations.sum()),

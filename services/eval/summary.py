@@ -66,6 +66,9 @@ def summarize(entries: list[dict]) -> dict:
         "convergence_s": {k: v for k, v in _dist([s["convergence_s"] for s in scores]).items()
                           if k != "p90"},
         "integrity_violations": sum(s["integrity_violations"] for s in scores),
+        # the share of frames (markings in view, after convergence) the car said ok; runs
+        # scored before 2026-12-07 (second stop) have none
+        "ok_share": _min_median([s["markings_in_view"].get("ok_share") for s in scores]),
         "frames_without_markings": (sum(s["frames_without_markings"] for s in scores) / frames
                                     if frames else None),
         "map": _map_quality(reports),

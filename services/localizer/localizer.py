@@ -19,6 +19,7 @@ from services.localizer.gnss_check import GnssCheck
 from services.localizer.icp import Icp, IcpResult, IpmNoise
 from services.localizer.init import CoarseSearch, distinct, far_apart, fine_overlap
 from services.localizer.map_cache import TileCache, class_slots
+from services.localizer.paint_check import PaintCheck
 
 logger = logging.getLogger(__name__)
 
@@ -71,8 +72,7 @@ class Localizer:
         gnss_check: GnssCheck | None = None,
         along_fix_sigma_m: float = LocalizerConfig.along_fix_sigma_m,
         init_gnss_tiebreak: bool = LocalizerConfig.init_gnss_tiebreak,
-        min_paint_fit: float = LocalizerConfig.integrity_min_paint_fit,
-        paint_fit_tol_m: float = LocalizerConfig.integrity_paint_fit_tol_m,
+        paint_check: PaintCheck | None = None,
         seed: int = 0,
     ):
         self.cache, self.icp, self.ekf, self.search = cache, icp, ekf, search
@@ -94,7 +94,7 @@ class Localizer:
         self.min_marking_points, self.gnss_check = min_marking_points, gnss_check or GnssCheck()
         self.hold_drift_per_m, self.dead_reckoning_drift_per_m, self.along_fix_sigma_m = (
             hold_drift_per_m, dead_reckoning_drift_per_m, along_fix_sigma_m)
-        self.min_paint_fit, self.paint_fit_tol_m = min_paint_fit, paint_fit_tol_m
+        self.paint_check = paint_check or PaintCheck()
         self._start(seed)
 
     def _start(self, seed: int) -> None:
@@ -134,7 +134,6 @@ class Localizer:
         self.pull_since_back = np.zeros(2)
         # frames since a match shifted the pose beyond what the filter's covariance allowed
         self.since_inconsistent = self.settle_frames
-        self.since_unfit = self.settle_frames  # ... and since one left its paint off the map's
 
     # -- verbs ------------------------------------------------------------------------------
 
@@ -272,23 +271,16 @@ class Localizer:
         return math.hypot(self.ekf.position_sigma_m, held, unmatched, self._pulled_m(), scaled)
 
     def _check_paint(self, result: IcpResult | None, pts: np.ndarray, cls: np.ndarray) -> None:
-        """Count the accepted matches that left their frame's marking points on the map's
-        markings since one did not (fewer than `min_paint_fit` of them within `paint_fit_tol_m`
-        of a cell of their class at the matched pose). Frames without a match count for
-        nothing: dead reckoning from a pose no marking confirmed confirms nothing."""
-        if result is None or self.min_paint_fit <= 0:
-            return
-        paint = _is_marking(cls)
-        fit = fine_overlap(pts[paint], class_slots(cls[paint]), result.pose, self.cache,
-                           tol_m=self.paint_fit_tol_m)
-        self.since_unfit = self.since_unfit + 1 if fit >= self.min_paint_fit else 0
+        """Ask an accepted match whether its frame's paint lies on the map's (PaintCheck).
+        Frames without a match count for nothing: dead reckoning from a pose no marking
+        confirmed confirms nothing."""
+        if result is not None:
+            self.paint_check.note(pts[_is_marking(cls)], result.pose, self.cache)
 
     def _paint_fits(self) -> bool:
-        """`settle_frames` accepted matches have left their frames' markings on the map's since
-        one did not (_check_paint). Such a match was made by the road surface's points, which fit
-        anywhere along a road: held-out Karlsruhe s433 was ok 1.7-6.6 m off with none of a
-        frame's 133-3372 marking points on the map's markings."""
-        return self.since_unfit >= self.settle_frames
+        """The latest accepted match left its frame's paint on the map's, and at most
+        `integrity_paint_misses` of the last `settle_frames` did not (PaintCheck)."""
+        return self.paint_check.trusted
 
     def _consistent(self) -> bool:
         """No match within the last `settle_frames` frames moved the pose beyond what the
@@ -672,8 +664,8 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         dead_reckoning_drift_per_m=lc.dead_reckoning_drift_per_m,
         along_fix_sigma_m=lc.along_fix_sigma_m,
         init_gnss_tiebreak=lc.init_gnss_tiebreak,
-        min_paint_fit=lc.integrity_min_paint_fit,
-        paint_fit_tol_m=lc.integrity_paint_fit_tol_m,
+        paint_check=PaintCheck(lc.integrity_min_paint_fit, lc.integrity_paint_fit_tol_m,
+                               lc.integrity_paint_misses, lc.settle_frames),
         gnss_check=GnssCheck(lc.gnss_check_fixes, lc.gnss_alert_sigmas),
         seed=seed,
     )

@@ -27,6 +27,7 @@ def test_a_wrong_pose_reported_ok_is_an_integrity_violation():
     s = score_frames(t_ns, est, ok, truth, np.ones(n, bool))
     assert s["integrity_violations"] == 3
     assert s["markings_in_view"]["availability_0_5m"] == pytest.approx(45 / 50)
+    assert s["markings_in_view"]["ok_share"] == pytest.approx(48 / 50)
 
 
 def test_statistics_are_taken_over_frames_with_markings_in_view_and_over_all():
@@ -80,21 +81,23 @@ def test_a_drive_that_never_converges_is_scored_over_all_its_frames():
 
 
 def test_the_summary_takes_distributions_over_drives_and_checks_the_goal():
-    def entry(x, avail=1.0, conv=1.0, viol=0):
+    def entry(x, avail=1.0, conv=1.0, viol=0, said_ok=0.8):
         stats = {k: {"mean": x, "p90": x, "max": x}
                  for k in ("x_m", "y_m", "lateral_m", "longitudinal_m", "yaw_deg")}
-        over = {**stats, "availability_0_5m": avail, "frames": 10}
+        over = {**stats, "availability_0_5m": avail, "ok_share": said_ok, "frames": 10}
         return {"ok": True, "score": {"markings_in_view": over, "all_frames": over,
                                       "frames": 10, "frames_without_markings": 2,
                                       "integrity_violations": viol, "convergence_s": conv},
                 "report": {"map": {"per_class": {"lane_line": {"precision": 0.97,
                                                                "recall": 0.9}}}}}
 
-    entries = [entry(0.01), entry(0.02), entry(0.03, avail=0.95, viol=2), {"ok": False}]
+    entries = [entry(0.01), entry(0.02, said_ok=0.5), entry(0.03, avail=0.95, viol=2),
+               {"ok": False}]
     s = summarize(entries)
     assert (s["drives"], s["failed"]) == (4, 1)
     assert s["x_m"]["median"] == pytest.approx(0.02) and s["x_m"]["worst"] == 0.03
     assert s["availability_0_5m"] == {"min": 0.95, "median": 1.0}
+    assert s["ok_share"] == {"min": 0.5, "median": 0.8}
     assert s["integrity_violations"] == 2 and s["frames_without_markings"] == pytest.approx(0.2)
     assert s["map"]["lane_line"]["precision"] == {"min": 0.97, "median": 0.97}
     assert s["goal_met"]["x_m_median"] and not s["goal_met"]["no_integrity_violation"]

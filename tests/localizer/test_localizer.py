@@ -479,33 +479,62 @@ def test_a_pose_pulled_beyond_its_covariance_is_not_ok_for_a_second(road_cache):
 def test_a_match_whose_paint_misses_the_map_is_not_ok_until_matches_fit_again(road_cache, rng):
     """A match the road surface's points made, with its frame's marking points off the map's
     markings (held-out Karlsruhe s433: ok while 1.7-6.6 m off, none of a frame's marking points
-    on the map's): the pose is not trusted until settle_frames matches have fitted since, and
-    frames without a match do not count (never off with integrity_min_paint_fit 0)."""
+    on the map's), is not trusted; frames without a match do not count. Trusted again once the
+    latest match fits and at most integrity_paint_misses of the last settle_frames missed
+    (never off with integrity_min_paint_fit 0)."""
     from services.localizer.icp import IcpResult
 
     true = np.array([62.0, 28.25, 0.02])  # stop line, crosswalk and dashes in view
     pts, cls = frame_points(road_cache, true, rng)
+    settle = LocalizerConfig.settle_frames
 
     def at(pose):
         return IcpResult(np.asarray(pose, float), np.eye(3) * 1e-4, 500, 500, 0.02, False,
                          np.array([1.0, 0.0, 0.0]), np.zeros(3), 5)
 
-    def fits_after_a_miss(min_fit):
-        loc = get_localizer(LocalizerConfig(integrity_min_paint_fit=min_fit), road_cache)
+    def trusted(min_fit, misses):
+        loc = get_localizer(LocalizerConfig(integrity_min_paint_fit=min_fit,
+                                            integrity_paint_misses=misses), road_cache)
         loc._check_paint(at(true), pts, cls)
         assert loc._paint_fits()
-        loc._check_paint(at(true + [1.3, 1.2, 0.0]), pts, cls)  # the paint off the lines
-        for _ in range(2 * LocalizerConfig.settle_frames):  # dead reckoning confirms nothing
-            loc._check_paint(None, pts, cls)
-        fits = []
-        for _ in range(LocalizerConfig.settle_frames + 1):
-            fits.append(loc._paint_fits())
-            loc._check_paint(at(true + [0.1, -0.1, 0.0]), pts, cls)  # within the tolerance
-        return fits
+        seq = []
 
-    settle = LocalizerConfig.settle_frames
-    assert fits_after_a_miss(0.3) == [False] * settle + [True]
-    assert all(fits_after_a_miss(0.0))
+        def match(pose):
+            loc._check_paint(None if pose is None else at(pose), pts, cls)
+            seq.append(loc._paint_fits())
+
+        match(true + [1.3, 1.2, 0.0])  # the paint off the lines
+        for _ in range(2 * settle):  # dead reckoning confirms nothing
+            match(None)
+        match(true + [0.1, -0.1, 0.0])  # within the tolerance
+        match(true + [1.3, 1.2, 0.0])  # a second miss within settle_frames matches
+        for _ in range(settle):
+            match(true + [0.1, -0.1, 0.0])
+        return seq
+
+    misses = [False] * (1 + 2 * settle)
+    assert trusted(0.3, 1) == misses + [True, False] + [False] * (settle - 3) + [True] * 3
+    assert trusted(0.3, 0) == misses + [False, False] + [False] * (settle - 1) + [True]
+    assert all(trusted(0.0, 1))
+
+
+def test_paint_on_the_map_s_paint_fits_whatever_class_the_frame_gives_it(road_cache, rng):
+    """The paint-fit check asks where the frame's paint lies, not which marking the segmenter
+    called it: the frame's points all read as ground signs fit at the true pose, and not
+    1.3 m off."""
+    from services.localizer.init import fine_overlap
+    from services.localizer.localizer import _is_marking
+    from services.localizer.map_cache import class_slots
+    from services.localizer.paint_check import paint_overlap
+
+    true = np.array([62.0, 28.25, 0.02])
+    pts, cls = frame_points(road_cache, true, rng)
+    paint = pts[_is_marking(cls)]
+    signs = np.full(len(paint), Cls.GROUND_SIGN)
+    assert len(paint) > 100
+    assert fine_overlap(paint, class_slots(signs), true, road_cache, tol_m=0.3) < 0.3
+    assert paint_overlap(paint, true, road_cache, 0.3) > 0.9
+    assert paint_overlap(paint, true + [1.3, 1.2, 0.0], road_cache, 0.3) < 0.3
 
 
 def test_pulls_before_and_after_a_gap_while_settling_do_not_cancel(road_cache):
