@@ -81,6 +81,13 @@ def format_summary(s: dict) -> str:
         lines.append(f"  map {cls:12s} precision min {_f(q['precision']['min'])} median "
                      f"{_f(q['precision']['median'])}, recall min {_f(q['recall']['min'])} "
                      f"median {_f(q['recall']['median'])}")
+    for world, w in (s.get("by_world") or {}).items():
+        lines.append(f"  world {world.split('/')[-1][:40]}: {w['drives']} drives, x median "
+                     f"{_f(w['x_m']['median'])} worst {_f(w['x_m']['worst'])}, yaw median "
+                     f"{_f(w['yaw_deg']['median'])} worst {_f(w['yaw_deg']['worst'])}, "
+                     f"availability min {_f(w['availability_0_5m_min'])}, said ok median "
+                     f"{_f(w['ok_share_median'])}, integrity violations "
+                     f"{w['integrity_violations']}")
     lines.append("  goal: " + ", ".join(f"{k} {v}" for k, v in s["goal_met"].items()))
     return "\n".join(lines) + "\n"
 

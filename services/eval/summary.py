@@ -37,6 +37,29 @@ def _map_quality(reports: list[dict]) -> dict:
     return out
 
 
+def _by_world(entries: list[dict]) -> dict:
+    """Per world (as named on the command line), over its finished drives: their count, the
+    median and worst of the per-drive mean x, y and yaw, the least availability, the median
+    share of frames said ok, and the integrity violation frames: where a suite over several
+    worlds stands, world by world."""
+    groups: dict[str, list[dict]] = {}
+    for e in entries:
+        if e["ok"]:
+            groups.setdefault(e.get("world", "?"), []).append(e["score"])
+    out = {}
+    for world, scores in groups.items():
+        over = [s["markings_in_view"] for s in scores]
+        row: dict = {"drives": len(scores)}
+        for k in PAPER_MEAN:
+            d = _dist([o[k]["mean"] for o in over])
+            row[k] = {"median": d["median"], "worst": d["worst"]}
+        row["availability_0_5m_min"] = _min_median([o["availability_0_5m"] for o in over])["min"]
+        row["ok_share_median"] = _min_median([o.get("ok_share") for o in over])["median"]
+        row["integrity_violations"] = sum(s["integrity_violations"] for s in scores)
+        out[world] = row
+    return out
+
+
 def goal_met(summary: dict) -> dict:
     """Each of the goal's conditions, true or false (None: not measured)."""
     met = {}
@@ -76,6 +99,7 @@ def summarize(entries: list[dict]) -> dict:
                        "availability_0_5m": _min_median([s["all_frames"]["availability_0_5m"]
                                                          for s in scores])},
         "paper_mean": PAPER_MEAN,
+        "by_world": _by_world(entries),
     }
     since = [s for s in scores if "from_first_marking" in s]  # runs before 2026-12-07: none
     if since:

@@ -93,11 +93,17 @@ def test_the_summary_takes_distributions_over_drives_and_checks_the_goal():
 
     entries = [entry(0.01), entry(0.02, said_ok=0.5), entry(0.03, avail=0.95, viol=2),
                {"ok": False}]
+    for e, world in zip(entries, ("town", "town", "av2:/data/3bff", "town"), strict=True):
+        e["world"] = world
     s = summarize(entries)
     assert (s["drives"], s["failed"]) == (4, 1)
     assert s["x_m"]["median"] == pytest.approx(0.02) and s["x_m"]["worst"] == 0.03
     assert s["availability_0_5m"] == {"min": 0.95, "median": 1.0}
     assert s["ok_share"] == {"min": 0.5, "median": 0.8}
+    town, av2 = s["by_world"]["town"], s["by_world"]["av2:/data/3bff"]
+    assert town["drives"] == 2 and town["x_m"] == {"median": 0.015, "worst": 0.02}
+    assert town["ok_share_median"] == pytest.approx(0.65) and town["integrity_violations"] == 0
+    assert av2["availability_0_5m_min"] == 0.95 and av2["integrity_violations"] == 2
     assert s["integrity_violations"] == 2 and s["frames_without_markings"] == pytest.approx(0.2)
     assert s["map"]["lane_line"]["precision"] == {"min": 0.97, "median": 0.97}
     assert s["goal_met"]["x_m_median"] and not s["goal_met"]["no_integrity_violation"]
