@@ -226,15 +226,23 @@ class LocalizerConfig:
     # that pull a pose 0.5 m off a few centimetres a frame swung a start's scale 3 % wrong
     scale_skips_inconsistent: bool = True
     # ... and not trusted while an accepted match leaves fewer than this share of its frame's
-    # marking points within integrity_paint_fit_tol_m of the map's markings (of any class):
+    # marking points within integrity_paint_fit_tol_m of the map's markings of their class:
     # road points fit anywhere along a road, and a match they made can be metres off with a
     # covariance of centimetres (0: off). A pose half a metre off leaves its paint that far
     # from the map's; 0.3 m keeps far points' noise in. Trusted again once the latest match
-    # fits and at most integrity_paint_misses of the last settle_frames did not (a frame of
-    # imagined paint now and then, not a run of them)
+    # fits and at most integrity_paint_misses of the last settle_frames did not; a marking of
+    # any class will do with integrity_paint_any_class (both relaxations: more ok frames, and
+    # more wrong ones on held-out drives; services/localizer/paint_check.py)
     integrity_min_paint_fit: float = 0.3
     integrity_paint_fit_tol_m: float = 0.3
-    integrity_paint_misses: int = 1
+    integrity_paint_misses: int = 0
+    integrity_paint_any_class: bool = False
+    # when fewer than paint_lost_fit of the last paint_lost_matches accepted matches left their
+    # paint on the map's, the submap is searched around the pose, and the filter restarts where
+    # its paint fits the map's by paint_relocate_margin (a share of its points) better (0: never)
+    paint_lost_matches: int = 30
+    paint_lost_fit: float = 0.3
+    paint_relocate_margin: float = 0.2
     init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
     init_travel_m: float = 12.0  # metres of frames gathered before the coarse search
     init_frames: int = 30

@@ -2,13 +2,14 @@
 
 ICP matches road-surface points too, and those fit anywhere along a road: a match they made can
 be metres off with a covariance of centimetres (held-out Karlsruhe s433: ok 1.7-6.6 m off, none
-of a frame's 133-3372 marking points within 0.3 m of the map's markings; 50-98 % of them at
-the true pose). So every accepted match is asked whether its frame's marking points lie on the
-map's markings. Where, not which: the class of a painted cell is the segmenter's least sure
-call (a stop line's end read as lane line, a crosswalk stripe as a sign); asking it too cost the
-suite 5 % of its ok frames and caught nothing more. A frame of imagined paint now and then is
-the model's (4-12 % of a healthy Karlsruhe drive's matches); a run of misses is a pose off the
-paint."""
+of a frame's 133-3372 marking points within 0.3 m of the map's markings of their class; 50-98 %
+of them at the true pose). So every accepted match is asked whether its frame's marking points
+lie on the map's markings.
+
+Two relaxations are options, off by default: asking only where the paint lies, not which class
+the model gave it (`any_class`), and letting some of the last matches miss (`misses`). Each
+gave 4-5 % more ok frames on three sets of drives and more wrong ones on a fourth (held-out
+seeds 441-443: 88 -> 109 and -> 114 violation frames; docs/RESULTS.md)."""
 
 from collections import deque
 
@@ -20,15 +21,17 @@ from common.geometry import transform_points_2d
 from services.localizer.map_cache import class_slots
 
 
-def paint_overlap(points_v: np.ndarray, pose: np.ndarray, cache, tol_m: float) -> float:
-    """Share of the (marking) points, vehicle frame, within tol_m of a map cell of any marking
-    class at pose (0 without points)."""
+def paint_overlap(points_v: np.ndarray, classes: np.ndarray, pose: np.ndarray, cache,
+                  tol_m: float, any_class: bool = False) -> float:
+    """Share of the marking points (vehicle frame) within tol_m of a map cell of their class,
+    or with any_class of any marking class, at pose (0 without points)."""
     if not len(points_v):
         return 0.0
     world = transform_points_2d(pose, np.asarray(points_v, float))
+    asked = [np.full(len(world), c) for c in MARKINGS] if any_class else [np.asarray(classes)]
     on_paint = np.zeros(len(world), bool)
-    for cls in MARKINGS:
-        nearest, valid = cache.nearest(world, class_slots(np.full(len(world), cls)))
+    for cls in asked:
+        nearest, valid = cache.nearest(world, class_slots(cls))
         on_paint |= valid & (np.hypot(*(world - nearest).T) < tol_m)
     return float(on_paint.mean())
 
@@ -40,18 +43,47 @@ class PaintCheck:
         tol_m: float = LocalizerConfig.integrity_paint_fit_tol_m,
         misses: int = LocalizerConfig.integrity_paint_misses,
         window: int = LocalizerConfig.settle_frames,
+        any_class: bool = LocalizerConfig.integrity_paint_any_class,
+        lost_matches: int = LocalizerConfig.paint_lost_matches,
+        lost_fit: float = LocalizerConfig.paint_lost_fit,
+        relocate_margin: float = LocalizerConfig.paint_relocate_margin,
     ):
         """min_fit: the share of a frame's marking points that must lie within tol_m of the
         map's markings (0: off); misses: how many of the last `window` matches may fall short,
-        the latest never."""
-        self.min_fit, self.tol_m, self.misses = min_fit, tol_m, misses
+        the latest never; any_class: a marking of any class will do; lost_matches, lost_fit:
+        the filter is lost when fewer than lost_fit of the last lost_matches fitted (0: never);
+        relocate_margin: by how much more of its paint a pose found then must fit the map's."""
+        self.min_fit, self.tol_m, self.misses, self.any_class = min_fit, tol_m, misses, any_class
         # whether each of the last matches fitted; before the first, as if they had
         self.fitted: deque = deque([True] * window, maxlen=window)
+        self.lost_fit, self.relocate_margin = lost_fit, relocate_margin
+        self.since_start: deque = deque(maxlen=max(lost_matches, 1))  # ... since the (re)start
 
-    def note(self, paint_v: np.ndarray, pose: np.ndarray, cache) -> None:
-        """An accepted match at pose of a frame whose marking points are paint_v."""
+    @classmethod
+    def from_config(cls, lc: LocalizerConfig) -> "PaintCheck":
+        return cls(lc.integrity_min_paint_fit, lc.integrity_paint_fit_tol_m,
+                   lc.integrity_paint_misses, lc.settle_frames, lc.integrity_paint_any_class,
+                   lc.paint_lost_matches, lc.paint_lost_fit, lc.paint_relocate_margin)
+
+    def note(self, paint_v: np.ndarray, classes: np.ndarray, pose: np.ndarray, cache) -> None:
+        """An accepted match at pose of a frame whose marking points are paint_v (classes)."""
         if self.min_fit > 0:
-            self.fitted.append(paint_overlap(paint_v, pose, cache, self.tol_m) >= self.min_fit)
+            share = paint_overlap(paint_v, classes, pose, cache, self.tol_m, self.any_class)
+            self.fitted.append(share >= self.min_fit)
+            self.since_start.append(share >= self.min_fit)
+
+    def restart(self) -> None:
+        """The filter starts again: what the lost test counts begins anew."""
+        self.since_start.clear()
+
+    @property
+    def lost(self) -> bool:
+        """A run of matches whose paint mostly misses the map's: not a frame of imagined paint
+        now and then (4-12 % of a healthy drive's matches) but a pose off the paint, which the
+        flag alone would leave there (held-out town s443: 3-6 m off for 100 s, ok now and then
+        when a frame's paint happened to fit)."""
+        full = len(self.since_start) == self.since_start.maxlen
+        return full and self.lost_fit > 0 and np.mean(self.since_start) < self.lost_fit
 
     @property
     def trusted(self) -> bool:

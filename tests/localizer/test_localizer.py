@@ -480,8 +480,8 @@ def test_a_match_whose_paint_misses_the_map_is_not_ok_until_matches_fit_again(ro
     """A match the road surface's points made, with its frame's marking points off the map's
     markings (held-out Karlsruhe s433: ok while 1.7-6.6 m off, none of a frame's marking points
     on the map's), is not trusted; frames without a match do not count. Trusted again once the
-    latest match fits and at most integrity_paint_misses of the last settle_frames missed
-    (never off with integrity_min_paint_fit 0)."""
+    latest match fits and at most integrity_paint_misses (0 by default) of the last
+    settle_frames missed (never off with integrity_min_paint_fit 0)."""
     from services.localizer.icp import IcpResult
 
     true = np.array([62.0, 28.25, 0.02])  # stop line, crosswalk and dashes in view
@@ -513,28 +513,52 @@ def test_a_match_whose_paint_misses_the_map_is_not_ok_until_matches_fit_again(ro
         return seq
 
     misses = [False] * (1 + 2 * settle)
+    assert trusted(0.3, 0) == misses + [False, False] + [False] * (settle - 1) + [True]  # default
     assert trusted(0.3, 1) == misses + [True, False] + [False] * (settle - 3) + [True] * 3
-    assert trusted(0.3, 0) == misses + [False, False] + [False] * (settle - 1) + [True]
-    assert all(trusted(0.0, 1))
+    assert all(trusted(0.0, 0))
 
 
-def test_paint_on_the_map_s_paint_fits_whatever_class_the_frame_gives_it(road_cache, rng):
-    """The paint-fit check asks where the frame's paint lies, not which marking the segmenter
-    called it: the frame's points all read as ground signs fit at the true pose, and not
-    1.3 m off."""
-    from services.localizer.init import fine_overlap
-    from services.localizer.localizer import _is_marking
-    from services.localizer.map_cache import class_slots
+def test_the_paint_check_asks_the_class_unless_told_any_marking_will_do(road_cache, rng):
+    """By default a frame's paint fits where the map holds paint of its class; with
+    integrity_paint_any_class, paint of any class will do: the frame's points all read as
+    ground signs fit at the true pose only then, and 1.3 m off neither way."""
     from services.localizer.paint_check import paint_overlap
 
     true = np.array([62.0, 28.25, 0.02])
     pts, cls = frame_points(road_cache, true, rng)
-    paint = pts[_is_marking(cls)]
+    paint = pts[cls >= Cls.LANE_LINE]
     signs = np.full(len(paint), Cls.GROUND_SIGN)
     assert len(paint) > 100
-    assert fine_overlap(paint, class_slots(signs), true, road_cache, tol_m=0.3) < 0.3
-    assert paint_overlap(paint, true, road_cache, 0.3) > 0.9
-    assert paint_overlap(paint, true + [1.3, 1.2, 0.0], road_cache, 0.3) < 0.3
+    assert paint_overlap(paint, signs, true, road_cache, 0.3) < 0.3
+    assert paint_overlap(paint, signs, true, road_cache, 0.3, any_class=True) > 0.9
+    assert paint_overlap(paint, signs, true + [1.3, 1.2, 0.0], road_cache, 0.3,
+                         any_class=True) < 0.3
+
+
+def test_a_pose_whose_paint_misses_restarts_only_where_the_paint_fits(road_cache, rng):
+    """Most of the last matches left their paint off the map's: the submap is searched around
+    the filter's pose. A pose 3 m across the road (the frame's stop line, crosswalk and dashes
+    fit one place only) restarts where the paint lies; a right pose whose frames paint what
+    the map lacks (imagined lines here) finds nothing better and is kept."""
+    true = np.array([62.0, 28.25, 0.02])
+    pts, cls = frame_points(road_cache, true, rng)
+
+    def relocated(start, pts, cls):
+        loc = get_localizer(LocalizerConfig(), road_cache)
+        loc.submap.append((loc.odom.copy(), pts, cls))
+        loc.ekf.reset(start, np.diag([0.05**2, 0.05**2, 1e-5]))
+        loc._relocate_on_paint()
+        return loc.ekf.pose, loc.inits
+
+    pose, inits = relocated(true + [0.0, 3.0, 0.0], pts, cls)
+    assert inits == 1 and np.hypot(*(pose[:2] - true[:2])) < 0.2
+
+    imagined = cls.copy()
+    road = np.flatnonzero(cls == Cls.ROAD)
+    imagined[cls >= Cls.LANE_LINE] = Cls.ROAD
+    imagined[rng.choice(road, 300, replace=False)] = Cls.LANE_LINE  # paint on the bare road
+    pose, inits = relocated(true, pts, imagined)
+    assert inits == 0 and np.allclose(pose, true)
 
 
 def test_pulls_before_and_after_a_gap_while_settling_do_not_cancel(road_cache):
