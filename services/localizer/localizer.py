@@ -576,8 +576,7 @@ class Localizer:
         here = self.ekf.pose.copy()
 
         def fit(pose):
-            return fine_overlap(pts[paint], class_slots(cls[paint]), pose, self.cache,
-                                tol_m=check.tol_m)
+            return check.share(pts[paint], cls[paint], pose, self.cache)
 
         scored = []
         for cand in self.search.search(pts, cls, lambda _yaw: here[:2], here[2], self.cache):

@@ -18,20 +18,22 @@ import numpy as np
 from common.classes import MARKINGS
 from common.config import LocalizerConfig
 from common.geometry import transform_points_2d
+from services.localizer.init import fine_overlap
 from services.localizer.map_cache import class_slots
 
 
 def paint_overlap(points_v: np.ndarray, classes: np.ndarray, pose: np.ndarray, cache,
                   tol_m: float, any_class: bool = False) -> float:
-    """Share of the marking points (vehicle frame) within tol_m of a map cell of their class,
-    or with any_class of any marking class, at pose (0 without points)."""
+    """Share of the marking points (vehicle frame) within tol_m of a map cell of their class
+    (init.fine_overlap), or with any_class of any marking class, at pose (0 without points)."""
+    if not any_class:
+        return fine_overlap(points_v, class_slots(classes), pose, cache, tol_m=tol_m)
     if not len(points_v):
         return 0.0
     world = transform_points_2d(pose, np.asarray(points_v, float))
-    asked = [np.full(len(world), c) for c in MARKINGS] if any_class else [np.asarray(classes)]
     on_paint = np.zeros(len(world), bool)
-    for cls in asked:
-        nearest, valid = cache.nearest(world, class_slots(cls))
+    for cls in MARKINGS:
+        nearest, valid = cache.nearest(world, class_slots(np.full(len(world), cls)))
         on_paint |= valid & (np.hypot(*(world - nearest).T) < tol_m)
     return float(on_paint.mean())
 
@@ -65,12 +67,16 @@ class PaintCheck:
                    lc.integrity_paint_misses, lc.settle_frames, lc.integrity_paint_any_class,
                    lc.paint_lost_matches, lc.paint_lost_fit, lc.paint_relocate_margin)
 
+    def share(self, paint_v: np.ndarray, classes: np.ndarray, pose: np.ndarray, cache) -> float:
+        """How much of the paint fits the map's at pose, as this check measures it."""
+        return paint_overlap(paint_v, classes, pose, cache, self.tol_m, self.any_class)
+
     def note(self, paint_v: np.ndarray, classes: np.ndarray, pose: np.ndarray, cache) -> None:
         """An accepted match at pose of a frame whose marking points are paint_v (classes)."""
         if self.min_fit > 0:
-            share = paint_overlap(paint_v, classes, pose, cache, self.tol_m, self.any_class)
-            self.fitted.append(share >= self.min_fit)
-            self.since_start.append(share >= self.min_fit)
+            fitted = self.share(paint_v, classes, pose, cache) >= self.min_fit
+            self.fitted.append(fitted)
+            self.since_start.append(fitted)
 
     def restart(self) -> None:
         """The filter starts again: what the lost test counts begins anew."""
