@@ -1,19 +1,24 @@
 """Replay a stored drive's car through the localizer core, offline: no router, no fleet, no
 rendering. The map is every tile the car received in that run (its localizer/tiles.npz, latest
 versions), the frames are the production log's labels segmented and lifted as the node does
-(cached once per drive in CACHE, replay.cache_file), and the result is scored as the suite scores a
+(cached once per drive in CACHE, replay.cache_file, least recently used evicted past
+CACHE_BYTES), and the result is scored as the suite scores a
 drive (services/eval/score.py). Minutes per 1 km drive instead of the demo's ten or more: the
 loop to iterate the localizer on, paired by drive.
 
     python -m services.eval.replay DIR [DIR ...] [--set localizer.KEY=VALUE ...] [--out FILE]
 
 DIR: a suite drive folder (DIR/drives/production/<log>, DIR/localizer/tiles.npz); each drive's
-figures go to stdout (one line) and, with --out, to FILE as JSON."""
+figures go to stdout (one line) and, with --out, to FILE as JSON.
+
+The frame cache: ROADMAP_REPLAY_CACHE (default /tmp/roadmap-replay), at most
+ROADMAP_REPLAY_CACHE_GB (default 8) GiB; a town drive's frames take 0.3-0.4 GiB."""
 
 import argparse
 import hashlib
 import json
 import logging
+import os
 import sys
 import time
 import tomllib
@@ -34,7 +39,10 @@ from services.localizer.tiles import decode_tile_message
 
 logger = logging.getLogger(__name__)
 
-CACHE = Path("/tmp/roadmap-replay")
+CACHE = Path(os.environ.get("ROADMAP_REPLAY_CACHE", "/tmp/roadmap-replay"))
+# unbounded, the cache of every run ever re-localized filled this machine's disk (41 GB)
+CACHE_BYTES = int(float(os.environ.get("ROADMAP_REPLAY_CACHE_GB", "8")) * 2**30)
+STALE_PART_S = 3600.0  # a .part file this old is a crashed writer's, not one being written
 # what replay_drive says of the run itself, beside the drive's score
 RUN_KEYS = ("drive", "inits", "cpu_s", "ok_frames")
 
@@ -55,12 +63,15 @@ def stored_config(drive_dir: Path, sets: list[str], role: str = "localizer"):
 
 def frame_points(log: DriveLog, cfg, cache_path: Path):
     """Per frame (points_v, classes, jacobians) as the node makes them; cached."""
-    if cache_path.exists():
+    try:
         with np.load(cache_path) as z:  # each z[key] reads the whole array: once each
             pts, cls, jac, off, in_view = (z[k] for k in ("pts", "cls", "jac", "offsets",
                                                          "in_view"))
+        os.utime(cache_path)  # used now: the last to be evicted
         return [(pts[a:b], cls[a:b], jac[a:b])
                 for a, b in zip(off[:-1], off[1:], strict=True)], in_view
+    except FileNotFoundError:  # never made, or evicted by another run since
+        pass
     from services.localizer.node import _FrameSource
 
     src = _FrameSource(log, cfg)
@@ -73,7 +84,37 @@ def frame_points(log: DriveLog, cfg, cache_path: Path):
              jac=np.concatenate([f[2] for f in frames]),
              offsets=np.cumsum([0] + [len(f[0]) for f in frames]), in_view=in_view)
     part.replace(cache_path)
+    evict(cache_path.parent, CACHE_BYTES, keep=cache_path)
     return frames, in_view
+
+
+def evict(folder: Path, budget: int, keep: Path, now: float | None = None) -> list[Path]:
+    """Delete the least recently used cache files (oldest mtime first; a hit touches its file)
+    until the folder's files fit `budget` bytes; never `keep`, nor another writer's fresh
+    .part file. Files another process removes meanwhile are skipped. Returns those deleted."""
+    now = time.time() if now is None else now
+    files = []
+    for path in folder.glob("*.npz"):
+        try:
+            st = path.stat()
+        except FileNotFoundError:
+            continue
+        files.append((st.st_mtime, st.st_size, path))
+    total = sum(size for _, size, _ in files)
+    gone = []
+    for mtime, size, path in sorted(files):
+        if total <= budget:
+            break
+        writing = path.name.endswith(".part.npz") and now - mtime < STALE_PART_S
+        if path == keep or writing:
+            continue
+        path.unlink(missing_ok=True)
+        total -= size
+        gone.append(path)
+    if gone:
+        logger.info("replay cache: evicted %d least recently used file(s) to stay under "
+                    "%.1f GiB", len(gone), budget / 2**30)
+    return gone
 
 
 def cache_file(drive_dir: Path) -> Path:

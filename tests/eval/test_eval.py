@@ -2,10 +2,12 @@
 (router, shards, vehicles, localizer) through the command, resumed on a second call."""
 
 import json
+import os
 
 import numpy as np
 import pytest
 
+from services.eval.replay import evict
 from services.eval.score import score_frames
 from services.eval.suite import Drive, parse_seeds, suite_drives
 from services.eval.summary import summarize
@@ -120,6 +122,21 @@ def test_suites_and_seeds():
 
 
 @pytest.mark.integration
+def test_the_replay_cache_evicts_the_least_recently_used_past_its_budget(tmp_path):
+    now = 1_000_000.0
+    ages = {"a.npz": 500, "b.npz": 400, "c.npz": 300, "new.npz": 10,
+            "x.part.npz": 5, "dead.part.npz": 7200}
+    for name, age in ages.items():
+        (tmp_path / name).write_bytes(b"0" * 100)
+        os.utime(tmp_path / name, (now - age, now - age))
+    # 600 bytes, budget 150: oldest first, but the file just written (keep) and another
+    # writer's fresh .part stay, even if the folder then stays over its budget
+    gone = evict(tmp_path, 150, keep=tmp_path / "a.npz", now=now)
+    assert sorted(p.name for p in gone) == ["b.npz", "c.npz", "dead.part.npz", "new.npz"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npz", "x.part.npz"]
+    assert evict(tmp_path, 10_000, keep=tmp_path / "a.npz", now=now) == []
+
+
 def test_roadmap_eval_runs_a_drive_scores_it_and_resumes(tmp_path):
     out = tmp_path / "eval"
     args = ("eval", "--world", "town", "--seeds", "101", "--vehicles", "2",
