@@ -243,6 +243,13 @@ class LocalizerConfig:
     paint_lost_matches: int = 30
     paint_lost_fit: float = 0.3
     paint_relocate_margin: float = 0.2
+    # ... and, searched the same way (each class's share weighed alike), after a match whose
+    # frame has paint_misplaced_min_points or more points of a stop line, crosswalk or ground
+    # sign, the map one within paint_misplaced_reach_m of most of them, and fewer than
+    # integrity_min_paint_fit of them on it (a miss for the flag too; 0: off); lane lines fit
+    # anywhere along the road
+    paint_misplaced_min_points: int = 100
+    paint_misplaced_reach_m: float = 3.0
     init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
     init_travel_m: float = 12.0  # metres of frames gathered before the coarse search
     init_frames: int = 30

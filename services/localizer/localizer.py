@@ -558,25 +558,30 @@ class Localizer:
         if self.bad_frames >= self.reinit_bad_frames:
             self._reinitialize(f"{self.bad_frames} bad frames")
         elif self.paint_check.lost:
-            self._relocate_on_paint()
+            self.paint_check.restart()
+            self._relocate_on_paint(self.paint_check.share, min_sep_m=1.0)
+        elif accepted and self.paint_check.misplaced:
+            # the map's stop line (crosswalk, sign) beside the frame's: off along the road,
+            # what the lane lines cannot show; a stop line weighs as much as they do here
+            self._relocate_on_paint(self.paint_check.balanced_share, min_sep_m=self.alert_limit_m)
 
-    def _relocate_on_paint(self) -> None:
-        """Most of the last matches left their paint off the map's (PaintCheck.lost): search
-        the submap around the filter's pose, and restart where its paint fits the map's by
-        `paint_relocate_margin` better than at the filter's pose. Paint the map lacks (a
+    def _relocate_on_paint(self, measure, min_sep_m: float) -> None:
+        """Most of the last matches left their paint off the map's (PaintCheck.lost), or the
+        latest one its along-road markings (PaintCheck.misplaced): search the submap around
+        the filter's pose, and restart where its paint fits the map's by
+        `paint_relocate_margin` better (`measure`) than at the filter's pose, at least
+        min_sep_m (or 3 deg) from it. Paint the map lacks (a
         junction's stop lines and crosswalks the fleet did not map: held-out Karlsruhe s441)
         fits nowhere better, and the filter keeps its good pose (a plain restart there cost the
         drive 70 frames metres off); a pose a lane over (held-out town s443, 3-6 m off for
         100 s) is left for the one where the paint lies. The heading stays within
         RELOCATE_TURN_RAD of the filter's."""
-        check = self.paint_check
-        check.restart()
         pts, cls = self._submap_points()
         paint = _is_marking(cls)
         here = self.ekf.pose.copy()
 
         def fit(pose):
-            return check.share(pts[paint], cls[paint], pose, self.cache)
+            return measure(pts[paint], cls[paint], pose, self.cache)
 
         scored = []
         for cand in self.search.search(pts, cls, lambda _yaw: here[:2], here[2], self.cache):
@@ -587,7 +592,8 @@ class Localizer:
             return
         own = fit(here)
         best_fit, best = max(scored, key=lambda c: c[0])
-        if best_fit > own + check.relocate_margin and _far(best.pose, here):
+        if best_fit > own + self.paint_check.relocate_margin and far_apart(
+                best.pose, here, min_sep_m=min_sep_m, min_sep_rad=RIVAL_SEP_RAD):
             logger.warning("the paint fits %.2f at %s, %.2f here: restarting there", best_fit,
                            np.round(best.pose - here, 2), own)
             self._start_filter(best, scale=1.0)

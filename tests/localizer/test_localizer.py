@@ -547,7 +547,7 @@ def test_a_pose_whose_paint_misses_restarts_only_where_the_paint_fits(road_cache
         loc = get_localizer(LocalizerConfig(), road_cache)
         loc.submap.append((loc.odom.copy(), pts, cls))
         loc.ekf.reset(start, np.diag([0.05**2, 0.05**2, 1e-5]))
-        loc._relocate_on_paint()
+        loc._relocate_on_paint(loc.paint_check.share, min_sep_m=1.0)
         return loc.ekf.pose, loc.inits
 
     pose, inits = relocated(true + [0.0, 3.0, 0.0], pts, cls)
@@ -559,6 +559,41 @@ def test_a_pose_whose_paint_misses_restarts_only_where_the_paint_fits(road_cache
     imagined[rng.choice(road, 300, replace=False)] = Cls.LANE_LINE  # paint on the bare road
     pose, inits = relocated(true, pts, imagined)
     assert inits == 0 and np.allclose(pose, true)
+
+
+def test_a_match_whose_stop_line_misses_the_maps_restarts_where_it_lies(road_cache, rng):
+    """Lane lines fit at any offset along the road; a stop line does not. A match 1.2 m along
+    the road (its lines on the map's, most of its paint on the map's) is a miss, for its stop
+    line beside the map's, and the submap searched class by class restarts the filter where
+    the stop line lies. A stop line the map lacks (a road without one) is no evidence."""
+    from services.localizer.icp import IcpResult
+    from services.localizer.paint_check import misplaced_classes
+
+    true = np.array([140.0, 28.25, 0.01])  # the stop line and crosswalk at x = 150 in view
+    pts, cls = frame_points(road_cache, true, rng)
+    off = true + [1.2, 0.0, 0.0]
+    match = IcpResult(off, np.eye(3) * 1e-4, 500, 500, 0.02, False, np.array([1.0, 0.0, 0.0]),
+                      np.zeros(3), 5)
+
+    def matched(**cfg):
+        loc = get_localizer(LocalizerConfig(**cfg), road_cache)
+        loc.submap.append((loc.odom.copy(), pts, cls))
+        loc.ekf.reset(off, np.diag([0.05**2, 0.05**2, 1e-5]))
+        loc._check_paint(match, pts, cls)
+        fits = loc._paint_fits()
+        loc._watch_integrity(match, True)
+        return loc, fits
+
+    loc, fits = matched()
+    assert loc.paint_check.misplaced == ["stop_line"] and not fits
+    assert loc.inits == 1 and np.hypot(*(loc.ekf.pose[:2] - true[:2])) < 0.2
+    loc, fits = matched(paint_misplaced_min_points=0)  # off: the lines' 0.7 passes
+    assert fits and loc.inits == 0 and np.allclose(loc.ekf.pose, off)
+
+    bare = fill_cache(TileCache(capacity=30), straight_road(features=False))
+    paint = cls >= Cls.LANE_LINE
+    assert misplaced_classes(pts[paint], cls[paint], true + [1.2, 0.0, 0.0], bare, 0.3, 0.3,
+                             100, 3.0) == []
 
 
 def test_pulls_before_and_after_a_gap_while_settling_do_not_cancel(road_cache):
