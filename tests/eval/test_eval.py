@@ -121,7 +121,6 @@ def test_suites_and_seeds():
     assert Drive("town:2", 7).name == "town-2-s7"
 
 
-@pytest.mark.integration
 def test_the_replay_cache_evicts_the_least_recently_used_past_its_budget(tmp_path):
     now = 1_000_000.0
     ages = {"a.npz": 500, "b.npz": 400, "c.npz": 300, "new.npz": 10,
@@ -137,6 +136,7 @@ def test_the_replay_cache_evicts_the_least_recently_used_past_its_budget(tmp_pat
     assert evict(tmp_path, 10_000, keep=tmp_path / "a.npz", now=now) == []
 
 
+@pytest.mark.integration
 def test_roadmap_eval_runs_a_drive_scores_it_and_resumes(tmp_path):
     out = tmp_path / "eval"
     args = ("eval", "--world", "town", "--seeds", "101", "--vehicles", "2",
