@@ -138,11 +138,16 @@ def distinct(items: list, pose_of, *, k: int | None = None, min_sep_m: float = 1
     return out
 
 
-def fine_overlap(points_v, slots, pose, cache, tol_m: float = 0.15) -> float:
-    """Fraction of points within tol of a map cell of their class at pose."""
+def class_distances(points_v, slots, pose, cache) -> np.ndarray:
+    """Each point's distance (m) at pose to the nearest map cell of its class (inf: none)."""
     from services.localizer.icp import _to_world
 
     world = _to_world(np.asarray(points_v, float), pose)
     nearest, valid = cache.nearest(world, slots)
-    d = np.hypot(*(world - nearest).T)
-    return float(np.mean(valid & (d < tol_m))) if len(d) else 0.0
+    return np.where(valid, np.hypot(*(world - nearest).T), np.inf)
+
+
+def fine_overlap(points_v, slots, pose, cache, tol_m: float = 0.15) -> float:
+    """Fraction of points within tol of a map cell of their class at pose."""
+    d = class_distances(points_v, slots, pose, cache)
+    return float(np.mean(d < tol_m)) if len(d) else 0.0

@@ -24,7 +24,7 @@ import numpy as np
 from common.classes import MARKINGS, Cls
 from common.config import LocalizerConfig
 from common.geometry import transform_points_2d
-from services.localizer.init import fine_overlap
+from services.localizer.init import class_distances, fine_overlap
 from services.localizer.map_cache import class_slots
 
 # markings that pin the position along the road (lane lines fit anywhere along it)
@@ -53,14 +53,14 @@ def misplaced_classes(points_v: np.ndarray, classes: np.ndarray, pose: np.ndarra
     the map has a marking within reach_m of most of them, and fewer than min_fit lie within
     tol_m of it at pose. Paint the map lacks (unmapped, or imagined by the model) is no
     evidence either way: it has nothing of its class within reach."""
+    classes = np.asarray(classes)
     out = []
     for cls in ALONG_ROAD_CLASSES:
-        sel = np.asarray(classes) == cls
+        sel = classes == cls
         if min_points <= 0 or sel.sum() < min_points:
             continue
-        world = transform_points_2d(pose, np.asarray(points_v, float)[sel])
-        nearest, valid = cache.nearest(world, class_slots(np.full(len(world), cls)))
-        d = np.where(valid, np.hypot(*(world - nearest).T), np.inf)
+        d = class_distances(np.asarray(points_v, float)[sel], class_slots(classes[sel]), pose,
+                            cache)
         if np.mean(d < reach_m) >= 0.5 and np.mean(d < tol_m) < min_fit:
             out.append(Cls(cls).name.lower())
     return out
