@@ -131,18 +131,16 @@ def mosaic(shard: MergerShard, tiles) -> np.ndarray:
 
 def map_quality(shard: MergerShard, world, logs, cfg) -> dict:
     """Per marking class, precision and recall of the merged map against the world's truth
-    (recall inside the ROI the drives swept), as the demo's report computes them."""
+    (recall inside the part of the ROI the drives' cameras saw), as the demo's report computes
+    them."""
+    from services.demo.report import observed_area
     from services.eval import map as ev
 
     tiles = shard.tiles()
     m = ev.Mosaic(tiles)
     raw = m.paste(tiles, [shard.labels(t) for t in tiles])
     truth = ev.truth_mosaic(world, m, tiles)
-    poses = np.concatenate([DriveLog(p).streams["frame_pose_true"] for p in logs])
-    roi = cfg.roi
-    observed = ev.roi_footprint(m, poses, roi.x_min_m,
-                                min(roi.length_m, cfg.vehicle.max_range_m - roi.x_min_m),
-                                roi.width_m)
+    observed = observed_area(cfg, m, logs)
     q = ev.map_quality(raw, truth, observed)
     return {k: {n: v[n] for n in MAP_METRICS} for k, v in q.items()}
 

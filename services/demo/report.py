@@ -144,7 +144,8 @@ def map_section(maps: MapRasters, km_mapped: float) -> dict:
         "digest": ev.map_digest(t["tiles"], t["raw"]),
         "tiles": len(t["tiles"]), "codecs": t["codecs"], **sizes,
         "notes": "kb_per_km divides by world.km_mapped (km of road the mapping drives "
-                 "covered, each road once); recall counts true cells inside that footprint; "
+                 "covered, each road once); recall counts the true cells the mapping drives' "
+                 "cameras saw of their IPM ROI (the image's view, not the whole rectangle); "
                  "raw = sparse grid of 5 bytes per labelled cell; png = one PNG per tile",
     }
 
@@ -319,13 +320,16 @@ def mapping_logs(out: Path) -> list[Path]:
 
 
 def observed_area(cfg: RoadmapConfig, mosaic: ev.Mosaic, log_jsons) -> np.ndarray:
-    """Cells the mapping drives' camera ROI swept along their true poses."""
-    poses = [DriveLog(p.parent if p.name == "log.json" else p).streams["frame_pose_true"]
-             for p in log_jsons]
+    """Cells the mapping drives' cameras saw of their IPM ROI along their true poses."""
     roi, length_m = cfg.roi, cfg.roi.length_m
     if hasattr(cfg, "vehicle"):  # the vehicles vote only up to vehicle.max_range_m
         length_m = min(length_m, cfg.vehicle.max_range_m - roi.x_min_m)
-    return ev.roi_footprint(mosaic, np.concatenate(poses), roi.x_min_m, length_m, roi.width_m)
+    drives = []
+    for p in log_jsons:
+        log = DriveLog(p.parent if p.name == "log.json" else p)
+        outline = ev.visible_outline(log.meta.camera, roi.x_min_m, length_m, roi.width_m)
+        drives.append((log.streams["frame_pose_true"], outline))
+    return ev.roi_footprint(mosaic, drives)
 
 
 def _path_km(xy: np.ndarray) -> float:

@@ -7,6 +7,10 @@ import os
 import numpy as np
 import pytest
 
+from common.camera import camera_from_config
+from common.config import RoadmapConfig
+from common.grid import TILE_CELLS
+from services.eval import map as ev
 from services.eval.replay import evict
 from services.eval.score import score_frames
 from services.eval.suite import Drive, parse_seeds, suite_drives
@@ -119,6 +123,31 @@ def test_suites_and_seeds():
     with pytest.raises(ValueError):
         parse_seeds("a-b")
     assert Drive("town:2", 7).name == "town-2-s7"
+
+
+def test_map_recall_counts_only_the_cells_the_camera_saw_of_the_roi():
+    """The ROI rectangle's near corners lie outside the image: they are not 'observed'."""
+    cfg = RoadmapConfig()
+    roi = cfg.roi
+    outline = ev.visible_outline(camera_from_config(cfg.camera), roi.x_min_m, 8.0, roi.width_m)
+    x, y = outline.T
+    near, far = np.abs(y[x < x.min() + 0.2]).max(), np.abs(y[x > x.max() - 0.2]).max()
+    assert x.min() > roi.x_min_m + 1.0 and x.max() <= roi.x_min_m + 8.0
+    assert near < 0.7 * roi.width_m / 2 and far > 0.98 * roi.width_m / 2
+    # one pose on tile (0, 0): the footprint is the trapezoid, not the 8 m x 8 m rectangle
+    mosaic = ev.Mosaic([(0, 0)])
+    pose = np.array([[10.0, 25.0, 0.0]])
+    seen = ev.roi_footprint(mosaic, [(pose, outline)])
+    rect = np.array([[3.0, -4.0], [11.0, -4.0], [11.0, 4.0], [3.0, 4.0]])
+    swept = ev.roi_footprint(mosaic, [(pose, rect)])
+    assert seen.shape == (TILE_CELLS, TILE_CELLS) and not (seen & ~swept).any()
+    assert 0.5 < seen.sum() / swept.sum() < 0.8
+    # a true line 3.7 m to the left, 3-6 m ahead, was never in view: no recall is owed
+    truth = np.zeros_like(seen, np.uint8)
+    cols, row = mosaic.to_cells(np.array([[13.0 + i * 0.1, 28.7] for i in range(30)])).T
+    truth[row.astype(int), cols.astype(int)] = 2
+    assert ev.map_quality(np.zeros_like(truth), truth, seen)["lane_line"]["recall"] is None
+    assert ev.map_quality(np.zeros_like(truth), truth, swept)["lane_line"]["recall"] == 0.0
 
 
 def test_the_replay_cache_evicts_the_least_recently_used_past_its_budget(tmp_path):
