@@ -250,6 +250,10 @@ class LocalizerConfig:
     # anywhere along the road
     paint_misplaced_min_points: int = 100
     paint_misplaced_reach_m: float = 3.0
+    # a match that leaves less than this share of its frame's paint on the map's markings of
+    # their class is not fused (it counts as a miss for the flag and the lost test): road
+    # points and paint the map lacks pull the pose and the heading anywhere (0: off)
+    paint_fuse_min_fit: float = 0.0
     init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
     init_travel_m: float = 12.0  # metres of frames gathered before the coarse search
     init_frames: int = 30

@@ -200,8 +200,10 @@ class Localizer:
             all_pts, class_slots(all_cls), self.ekf.pose, self.cache, all_jac,
             prior_cov=self.ekf.cov, gate_start_m=gate)
         self._remember(result, pts, cls, jac)
-        accepted = self._fuse(result)
-        self._check_paint(result if accepted else None, pts, cls)
+        share = self._anchor_share(result, pts, cls)
+        unanchored = share is not None and share < self.paint_check.fuse_min_fit
+        accepted = self._fuse(None if unanchored else result)
+        self._check_paint(result if accepted or unanchored else None, pts, cls, share)
         if accepted and jac is not None and len(result.attitude):
             self.calibration[: len(result.attitude)] += self.calibration_rate * result.attitude
         diag = self._frame_diag(result, accepted)
@@ -274,13 +276,22 @@ class Localizer:
             scaled = self.ekf.scale_sigma * (self.travel_m - self.sure_fix_travel_m)
         return math.hypot(self.ekf.position_sigma_m, held, unmatched, self._pulled_m(), scaled)
 
-    def _check_paint(self, result: IcpResult | None, pts: np.ndarray, cls: np.ndarray) -> None:
-        """Ask an accepted match whether its frame's paint lies on the map's (PaintCheck).
-        Frames without a match count for nothing: dead reckoning from a pose no marking
-        confirmed confirms nothing."""
+    def _anchor_share(self, result: IcpResult | None, pts, cls) -> float | None:
+        """The share of the frame's paint a match leaves on the map's, where a match must leave
+        `PaintCheck.fuse_min_fit` of it there to be fused (None: no match, or no such rule)."""
+        if result is None or self.paint_check.fuse_min_fit <= 0:
+            return None
+        paint = _is_marking(cls)
+        return self.paint_check.share(pts[paint], cls[paint], result.pose, self.cache)
+
+    def _check_paint(self, result: IcpResult | None, pts: np.ndarray, cls: np.ndarray,
+                     share: float | None = None) -> None:
+        """Ask a match (accepted, or refused for its paint) whether its frame's paint lies on the
+        map's (PaintCheck; `share`: already measured). Frames without a match count for
+        nothing: dead reckoning from a pose no marking confirmed confirms nothing."""
         if result is not None:
             paint = _is_marking(cls)
-            self.paint_check.note(pts[paint], cls[paint], result.pose, self.cache)
+            self.paint_check.note(pts[paint], cls[paint], result.pose, self.cache, share)
 
     def _paint_fits(self) -> bool:
         """The latest accepted match left its frame's paint on the map's, and at most

@@ -92,6 +92,7 @@ class PaintCheck:
         relocate_margin: float = LocalizerConfig.paint_relocate_margin,
         misplaced_min_points: int = LocalizerConfig.paint_misplaced_min_points,
         misplaced_reach_m: float = LocalizerConfig.paint_misplaced_reach_m,
+        fuse_min_fit: float = LocalizerConfig.paint_fuse_min_fit,
     ):
         """min_fit: the share of a frame's marking points that must lie within tol_m of the
         map's markings (0: off); misses: how many of the last `window` matches may fall short,
@@ -99,7 +100,8 @@ class PaintCheck:
         the filter is lost when fewer than lost_fit of the last lost_matches fitted (0: never);
         relocate_margin: by how much more of its paint a pose found then must fit the map's;
         misplaced_min_points, misplaced_reach_m: misplaced_classes (0 points: off), a miss,
-        and a search along the road (`misplaced`)."""
+        and a search along the road (`misplaced`); fuse_min_fit: the share of its frame's paint
+        a match must leave on the map's to be fused at all (0: off; the Localizer asks)."""
         self.min_fit, self.tol_m, self.misses, self.any_class = min_fit, tol_m, misses, any_class
         # whether each of the last matches fitted; before the first, as if they had
         self.fitted: deque = deque([True] * window, maxlen=window)
@@ -107,13 +109,15 @@ class PaintCheck:
         self.since_start: deque = deque(maxlen=max(lost_matches, 1))  # ... since the (re)start
         self.misplaced_min_points, self.misplaced_reach_m = misplaced_min_points, misplaced_reach_m
         self.misplaced: list = []  # the latest match's misplaced_classes
+        self.fuse_min_fit = fuse_min_fit
 
     @classmethod
     def from_config(cls, lc: LocalizerConfig) -> "PaintCheck":
         return cls(lc.integrity_min_paint_fit, lc.integrity_paint_fit_tol_m,
                    lc.integrity_paint_misses, lc.settle_frames, lc.integrity_paint_any_class,
                    lc.paint_lost_matches, lc.paint_lost_fit, lc.paint_relocate_margin,
-                   lc.paint_misplaced_min_points, lc.paint_misplaced_reach_m)
+                   lc.paint_misplaced_min_points, lc.paint_misplaced_reach_m,
+                   lc.paint_fuse_min_fit)
 
     def share(self, paint_v: np.ndarray, classes: np.ndarray, pose: np.ndarray, cache) -> float:
         """How much of the paint fits the map's at pose, as this check measures it."""
@@ -125,14 +129,17 @@ class PaintCheck:
         return balanced_overlap(paint_v, classes, pose, cache, self.tol_m,
                                 self.misplaced_min_points)
 
-    def note(self, paint_v: np.ndarray, classes: np.ndarray, pose: np.ndarray, cache) -> None:
-        """An accepted match at pose of a frame whose marking points are paint_v (classes)."""
+    def note(self, paint_v: np.ndarray, classes: np.ndarray, pose: np.ndarray, cache,
+             share: float | None = None) -> None:
+        """A match at pose of a frame whose marking points are paint_v (classes); `share`:
+        their share on the map's, if already measured (self.share)."""
         if self.min_fit > 0:
             self.misplaced = misplaced_classes(paint_v, classes, pose, cache, self.tol_m,
                                                self.min_fit, self.misplaced_min_points,
                                                self.misplaced_reach_m)
-            fitted = (self.share(paint_v, classes, pose, cache) >= self.min_fit
-                      and not self.misplaced)
+            if share is None:
+                share = self.share(paint_v, classes, pose, cache)
+            fitted = share >= self.min_fit and not self.misplaced
             self.fitted.append(fitted)
             self.since_start.append(fitted)
 
