@@ -161,6 +161,10 @@ class LocalizerConfig:
     # a lane-lines-only match holds the along-road position at the prediction (Localizer._held)
     hold_along_road_m: float = 0.02  # sigma of the hold, m (0: off)
     hold_below_m: float = 0.1  # ... once the filter's along-road sigma is below this, m
+    # ... and the odometry scale learns nothing from a held match (its estimate and variance
+    # stand; services/localizer/ekf.py consider form): summed frame after frame, the hold's
+    # pseudo-measurement shrank the scale's sigma to 0.07 % while it was 1.2 % wrong
+    hold_considers_scale: bool = False
     # far points' residuals along the viewing ray weigh less: a pixel is r^2 / (f h) m there
     ipm_sigma_px: float = 1.0  # label noise of the IPM points, pixels (0: off; IpmNoise)
     icp_cov_scale: float = 60.0  # single-frame ICP is over-confident (correlated points, vibration)

@@ -248,17 +248,20 @@ class PoseFilter:
         return self._update(np.asarray(pose, float), np.eye(3, 6), np.asarray(cov, float))
 
     def update_posterior(
-        self, pose: np.ndarray, information: np.ndarray, gate_chi2: float = 16.27
+        self, pose: np.ndarray, information: np.ndarray, gate_chi2: float = 16.27,
+        consider_scale: bool = False,
     ) -> bool:
         """Accept a pose already fused with this filter's prediction (ICP with the prediction as
         its prior) together with the information its measurements added (3x3 over the pose).
 
         The pose block becomes (P^-1 + information)^-1; the odometry scale follows the pose through
         its prior correlation (it is observed only through the pose). Gated by the shift of the
-        pose relative to the prediction's covariance."""
+        pose relative to the prediction's covariance. With `consider_scale` the scale's estimate
+        and variance stand, as for a frozen scale (information that is no measurement of the
+        wheel: a hold of the along-road position at the prediction)."""
         if not self.initialized:
             return False
-        considered = self.scale_frozen and self.frozen_scale_considered
+        considered = (self.scale_frozen and self.frozen_scale_considered) or consider_scale
         if not considered:
             self._decouple_frozen_scale()
         P = self.ekf.P

@@ -76,8 +76,8 @@ class Localizer:
         gnss_check: GnssCheck | None = None,
         along_fix_sigma_m: float = LocalizerConfig.along_fix_sigma_m,
         init_gnss_tiebreak: bool = LocalizerConfig.init_gnss_tiebreak,
-        paint_check: PaintCheck | None = None,
-        seed: int = 0,
+        paint_check: PaintCheck | None = None, seed: int = 0,
+        hold_considers_scale: bool = LocalizerConfig.hold_considers_scale,
     ):
         self.cache, self.icp, self.ekf, self.search = cache, icp, ekf, search
         self.max_points, self.road_fraction = max_points, road_fraction
@@ -99,6 +99,7 @@ class Localizer:
         self.hold_drift_per_m, self.dead_reckoning_drift_per_m, self.along_fix_sigma_m = (
             hold_drift_per_m, dead_reckoning_drift_per_m, along_fix_sigma_m)
         self.paint_check = paint_check or PaintCheck()
+        self.hold_considers_scale = hold_considers_scale
         self._start(seed)
 
     def _start(self, seed: int) -> None:
@@ -226,9 +227,10 @@ class Localizer:
         """The match into the filter (False: none or gated out), and what the integrity flag
         keeps of it: the correction, the travel at the last match and along-road fix."""
         predicted = self.ekf.pose[:2]
+        info, held = (None, False) if result is None else self._held(result)
+        # a hold is no measurement of the wheel: the scale learns nothing from it
         accepted = result is not None and self.ekf.update_posterior(
-            result.pose, self._held(result)
-        )
+            result.pose, info, consider_scale=self.hold_considers_scale and held)
         if accepted and self.unmatched_frames >= self.settle_frames:  # markings are back
             self.pull_since_back = np.zeros(2)
             if self.settled_matches >= self.reacquire_settle_frames:  # (else still settling)
@@ -418,10 +420,11 @@ class Localizer:
         nats = (offsets[0] ** 2 - offsets[near] ** 2) / (2.0 * sigma**2)
         return equals[near] if nats > GNSS_TIEBREAK_NATS else equals[0]
 
-    def _held(self, res: IcpResult) -> np.ndarray:
+    def _held(self, res: IcpResult) -> tuple[np.ndarray, bool]:
         """The information a match adds, plus, on a degenerate match (lane lines only: nothing
         along the road), a hold of the along-road position at the prediction with sigma
-        `hold_m` once the filter knows that position to within `hold_below_m`.
+        `hold_m` once the filter knows that position to within `hold_below_m`; and whether the
+        hold was added.
 
         Through a featureless stretch the odometry (its scale learnt) keeps the along-road
         position better than the weak, slowly biased along-road pull of the frames around it;
@@ -430,13 +433,13 @@ class Localizer:
         hold would freeze a wrong along-road guess."""
         info = res.information
         if not (self.hold_m > 0 and res.degenerate):
-            return info
+            return info, False
         u = res.weak_direction
         along = float(u @ self.ekf.cov @ u)
         if along > self.hold_below_m**2:
-            return info
+            return info, False
         self.holding = True
-        return info + np.outer(u, u) / self.hold_m**2
+        return info + np.outer(u, u) / self.hold_m**2, True
 
     def _weigh_rivals(self) -> dict:
         """Match the submap at the filter's pose and at each rival's (ICP-refined) every
@@ -707,8 +710,8 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         init_travel_m=lc.init_travel_m,
         init_frames=lc.init_frames,
         reinit_bad_frames=lc.reinit_bad_frames,
-        hold_m=lc.hold_along_road_m,
-        hold_below_m=lc.hold_below_m,
+        hold_m=lc.hold_along_road_m, hold_below_m=lc.hold_below_m,
+        hold_considers_scale=lc.hold_considers_scale,
         recent_frames=lc.recent_frames,
         track_gate_m=lc.icp_track_gate_m,
         alert_limit_m=lc.alert_limit_m,

@@ -233,12 +233,13 @@ def test_a_lane_lines_only_match_holds_the_along_road_position_only_once_it_is_k
     res = IcpResult(np.zeros(3), np.eye(3), 500, 500, 0.02, True, along, np.zeros(3), 5,
                     information=info)
     loc.ekf.reset(np.zeros(3), np.diag([0.4**2, 0.05**2, 1e-4]))  # just initialized
-    assert np.array_equal(loc._held(res), info)
+    assert np.array_equal(loc._held(res)[0], info) and not loc._held(res)[1]
     loc.ekf.reset(np.zeros(3), np.diag([0.05**2, 0.05**2, 1e-4]))  # along-road known
-    assert loc._held(res)[0, 0] == pytest.approx(1 / 0.02**2)
+    held, is_held = loc._held(res)
+    assert held[0, 0] == pytest.approx(1 / 0.02**2) and is_held
     sure = IcpResult(np.zeros(3), np.eye(3), 500, 500, 0.02, False, along, np.zeros(3), 5,
                      information=info)
-    assert np.array_equal(loc._held(sure), info)  # a match that sees along the road: as is
+    assert np.array_equal(loc._held(sure)[0], info)  # a match that sees along the road: as is
 
 
 def test_ipm_noise_weighs_far_residuals_along_the_ray_less():
