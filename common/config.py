@@ -165,10 +165,6 @@ class LocalizerConfig:
     # stand; services/localizer/ekf.py consider form): summed frame after frame, the hold's
     # pseudo-measurement shrank the scale's sigma to 0.07 % while it was 1.2 % wrong
     hold_considers_scale: bool = False
-    # the odometry scale learnt only from pairs of the matches' own along-road fixes this far
-    # apart (wheel travel, m), never from a pull that may be a start's along-road error read
-    # as scale (services/localizer/scale_baseline.py; 0: from the pulls)
-    scale_baseline_m: float = 0.0
     # far points' residuals along the viewing ray weigh less: a pixel is r^2 / (f h) m there
     ipm_sigma_px: float = 1.0  # label noise of the IPM points, pixels (0: off; IpmNoise)
     icp_cov_scale: float = 60.0  # single-frame ICP is over-confident (correlated points, vibration)

@@ -25,7 +25,6 @@ from filterpy.kalman import ExtendedKalmanFilter
 
 from common.config import LocalizerConfig
 from common.geometry import wrap_angle
-from services.localizer.scale_baseline import ScaleBaselines
 
 CHI2_99 = {2: 9.21, 3: 11.34}
 SCALE_LIMIT = 0.05  # wheel odometry scale error beyond +-5 % is a filter fault, not a car
@@ -99,7 +98,6 @@ class PoseFilter:
         camera_yaw_sigma0_rad: float = math.radians(0.3),
         freeze_scale_on_reset: bool = LocalizerConfig.scale_frozen_at_start,
         scale_thaw_sigma_m: float = LocalizerConfig.scale_thaw_fix_sigma_m,
-        scale_baseline_m: float = LocalizerConfig.scale_baseline_m,
         consistency_chi2: float = LocalizerConfig.integrity_consistency_chi2,
         scale_skips_inconsistent: bool = LocalizerConfig.scale_skips_inconsistent,
         frozen_scale_considered: bool = LocalizerConfig.scale_frozen_considered,
@@ -114,8 +112,11 @@ class PoseFilter:
         self.max_position_sigma_m = max_position_sigma_m
         self.max_rejections = max_rejections
         self.scale_sigma0, self.scale_walk_per_s = scale_sigma0, scale_walk_per_s
-        self.inflate_after, self.inflate_m, self.inflate_yaw_rad = (inflate_after, inflate_m,
-                                                                     inflate_yaw_rad)
+        self.inflate_after, self.inflate_m, self.inflate_yaw_rad = (
+            inflate_after,
+            inflate_m,
+            inflate_yaw_rad,
+        )
         self.inflations = 0
         self.pose_rejections = 0
         self.gnss_rejections = 0
@@ -138,11 +139,6 @@ class PoseFilter:
         self.freeze_scale_on_reset, self.scale_thaw_sigma_m = (freeze_scale_on_reset,
                                                                scale_thaw_sigma_m)
         self.scale_frozen = False
-        # with a baseline the scale learns only from along-road fixes that far apart, measured
-        # by the unscaled wheel odometry (its own frame; along_road_fix), never from a pull
-        self.baselines = ScaleBaselines(scale_baseline_m) if scale_baseline_m > 0 else None
-        self.scale_from_pulls = self.baselines is None
-        self.wheel_xy, self.wheel_yaw = np.zeros(2), 0.0
 
     # -- state ------------------------------------------------------------------------------
 
@@ -158,9 +154,7 @@ class PoseFilter:
         self.ekf.P[5, 5] = self.camera_yaw_sigma0**2
         self.initialized = True
         self.rejections = 0
-        self.scale_frozen = self.freeze_scale_on_reset or not self.scale_from_pulls
-        if self.baselines is not None:  # fixes before a restart may be of another place
-            self.baselines.restart()
+        self.scale_frozen = self.freeze_scale_on_reset
 
     @property
     def pose(self) -> np.ndarray:
@@ -214,10 +208,6 @@ class PoseFilter:
     def predict(self, speed_mps: float, yaw_rate_rps: float, dt_s: float) -> None:
         if not self.initialized or dt_s <= 0:
             return
-        half = self.wheel_yaw + 0.5 * yaw_rate_rps * dt_s
-        self.wheel_xy = self.wheel_xy + speed_mps * dt_s * np.array([math.cos(half),
-                                                                      math.sin(half)])
-        self.wheel_yaw += yaw_rate_rps * dt_s
         _, _, yaw, k, b, cam = self.ekf.x.reshape(-1)
         yaw_mid = yaw - cam + 0.5 * (yaw_rate_rps - b) * dt_s
         c, s = math.cos(yaw_mid), math.sin(yaw_mid)
@@ -345,40 +335,7 @@ class PoseFilter:
     def along_road_fixed(self, sigma_m: float) -> None:
         """An accepted match alone knew the along-road position to within sigma_m."""
         if sigma_m <= self.scale_thaw_sigma_m:
-            self.thaw_scale()
-
-    def along_road_fix(self, fixed_xy: np.ndarray, sigma_m: float) -> bool:
-        """A match's own fix of the position (scale_baseline.prior_free) that pinned it along
-        the road to sigma_m: with a baseline, the scale from it and the fix a baseline back
-        (update_scale). True: the scale was updated."""
-        if self.baselines is None:
-            return False
-        measured = self.baselines.fix(self.wheel_xy, fixed_xy, sigma_m)
-        return measured is not None and self.update_scale(*measured)
-
-    def thaw_scale(self) -> None:
-        """The scale learns from the pulls from here on (unless it learns only from
-        update_scale)."""
-        if self.scale_from_pulls:
             self.scale_frozen = False
-
-    def update_scale(self, scale: float, sigma: float, gate_chi2: float = 6.63) -> bool:
-        """A direct measurement of the odometry scale (ScaleBaselines), frozen or not; the pose
-        follows through its covariance with the scale. False: gated out (chi-square, 1 dof)."""
-        if not self.initialized:
-            return False
-        P, x = self.ekf.P, self.ekf.x.reshape(-1).copy()
-        S = float(P[3, 3]) + sigma**2
-        y = float(scale) - x[3]
-        if y * y / S > gate_chi2:
-            return False
-        K = P[:, 3] / S
-        x = x + K * y
-        x[2], x[3] = float(wrap_angle(x[2])), _clamp_scale(x[3])
-        keep = np.eye(len(P)) - np.outer(K, np.eye(len(P))[3])
-        self.ekf.x = x.reshape(-1, 1)
-        self.ekf.P = keep @ P @ keep.T + np.outer(K, K) * sigma**2
-        return True
 
     def _considered_update(self, z, H, R) -> None:
         """A linear update that leaves the frozen scale's estimate and variance as they are

@@ -20,7 +20,6 @@ from services.localizer.icp import Icp, IcpResult, IpmNoise
 from services.localizer.init import CoarseSearch, distinct, far_apart, fine_overlap
 from services.localizer.map_cache import TileCache, class_slots
 from services.localizer.paint_check import PaintCheck
-from services.localizer.scale_baseline import prior_free
 
 logger = logging.getLogger(__name__)
 
@@ -140,7 +139,6 @@ class Localizer:
         self.pull_since_back = np.zeros(2)
         # frames since a match shifted the pose beyond what the filter's covariance allowed
         self.since_inconsistent = self.settle_frames
-        self.trusted = False  # the last frame's pose was trusted (process_frame)
 
     # -- verbs ------------------------------------------------------------------------------
 
@@ -219,8 +217,7 @@ class Localizer:
         trusted = (self.ekf.ok and not self.rivals and self._consistent() and self._paint_fits()
                    and self.integrity_k * integrity_sigma_m <= self.alert_limit_m)
         if trusted:  # what the matches pull from here on may be the scale's doing
-            self.ekf.thaw_scale()
-        self.trusted = trusted
+            self.ekf.scale_frozen = False
         # ... nor, for the ok flag, one the GNSS has not yet checked since the (re)start
         ok = trusted and self.gnss_check.heard
         diag["integrity_sigma_m"] = round(integrity_sigma_m, 4)
@@ -229,7 +226,7 @@ class Localizer:
     def _fuse(self, result: IcpResult | None) -> bool:
         """The match into the filter (False: none or gated out), and what the integrity flag
         keeps of it: the correction, the travel at the last match and along-road fix."""
-        predicted, prior_cov = self.ekf.pose[:2], self.ekf.cov[:2, :2]
+        predicted = self.ekf.pose[:2]
         info, held = (None, False) if result is None else self._held(result)
         # a hold is no measurement of the wheel: the scale learns nothing from it
         accepted = result is not None and self.ekf.update_posterior(
@@ -254,11 +251,6 @@ class Localizer:
             along_m = self._along_road_sigma_m(result.information)
             if along_m <= self.along_fix_sigma_m:
                 self.sure_fix_travel_m = self.travel_m
-            if along_m <= self.along_fix_sigma_m and self.trusted:  # (a start may be metres off)
-                yaw = self.ekf.pose[2]
-                self.ekf.along_road_fix(*prior_free(
-                    result.pose[:2], predicted, prior_cov, result.information[:2, :2],
-                    np.array([math.cos(yaw), math.sin(yaw)])))
             self.ekf.along_road_fixed(along_m)
         return accepted
 
@@ -500,7 +492,6 @@ class Localizer:
         cov[2, 2] += math.radians(1.0) ** 2
         self.ekf.reset(res.pose, cov, scale)
         self.bad_frames = self.waiting_frames = self.unmatched_frames = 0
-        self.trusted = False
         self.fix_travel_m, self.holding = self.travel_m, False
         self.match_travel_m = self.sure_fix_travel_m = self.travel_m
         self.corrections.clear()
@@ -705,7 +696,7 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         scale_thaw_sigma_m=lc.scale_thaw_fix_sigma_m,
         consistency_chi2=lc.integrity_consistency_chi2,
         scale_skips_inconsistent=lc.scale_skips_inconsistent,
-        frozen_scale_considered=lc.scale_frozen_considered, scale_baseline_m=lc.scale_baseline_m,
+        frozen_scale_considered=lc.scale_frozen_considered,
     )
     search = CoarseSearch(radius_m=lc.init_radius_m, seed=seed)
     return Localizer(
