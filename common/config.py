@@ -163,7 +163,8 @@ class LocalizerConfig:
     hold_below_m: float = 0.1  # ... once the filter's along-road sigma is below this, m
     # ... and the odometry scale learns nothing from a held match (its estimate and variance
     # stand; services/localizer/ekf.py consider form): summed frame after frame, the hold's
-    # pseudo-measurement shrank the scale's sigma to 0.07 % while it was 1.2 % wrong
+    # pseudo-measurement shrank the scale's sigma to 0.07 % while it was 1.2 % wrong (off:
+    # mixed on held-out drives, docs/RESULTS.md, "491-493")
     hold_considers_scale: bool = False
     # far points' residuals along the viewing ray weigh less: a pixel is r^2 / (f h) m there
     ipm_sigma_px: float = 1.0  # label noise of the IPM points, pixels (0: off; IpmNoise)
@@ -256,7 +257,8 @@ class LocalizerConfig:
     paint_misplaced_reach_m: float = 3.0
     # a match that leaves less than this share of its frame's paint on the map's markings of
     # their class is not fused (it counts as a miss for the flag and the lost test): road
-    # points and paint the map lacks pull the pose and the heading anywhere (0: off)
+    # points and paint the map lacks pull the pose and the heading anywhere (0: off; 0.1
+    # helped one held-out drive and cost others their heading: docs/RESULTS.md, "491-493")
     paint_fuse_min_fit: float = 0.0
     init_radius_m: float = 6.0  # coarse search half-size around the GNSS fix
     init_travel_m: float = 12.0  # metres of frames gathered before the coarse search
