@@ -57,8 +57,8 @@ def visible_outline(camera, x_min_m: float, length_m: float, width_m: float) -> 
     the convex hull of the IPM table's ground points. Near the car the image is narrower than the
     ROI (the demo's camera: its image's bottom row meets the ground 4.9 m ahead, 2.3 m either
     side, and the full 4 m only from 7.3 m on), so a third of the ROI rectangle is never in view,
-    and at a turn its inner corner sweeps paint no frame shows (the rectangle made a town's crosswalk recall 0.77 where the camera's
-    view gives 0.97)."""
+    and at a turn its inner corner sweeps paint no frame shows (the rectangle made a town's
+    crosswalk recall 0.77 where the camera's view gives 0.97)."""
     from common.camera import build_ipm_lookup
 
     ipm = build_ipm_lookup(camera, x_min_m=x_min_m, length_m=length_m, width_m=width_m)
