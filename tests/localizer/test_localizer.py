@@ -359,6 +359,20 @@ def test_a_frozen_scale_learns_nothing_from_a_start_pulled_back_along_the_road()
     assert frozen.odometry_scale < 0.999
 
 
+def test_a_considered_scale_keeps_its_estimate_and_variance_while_the_pose_moves():
+    """update_posterior(consider_scale=True), as a held lane-lines-only match is fused with
+    localizer.hold_considers_scale: a pseudo-measurement that says nothing about the wheel."""
+    f = PoseFilter(freeze_scale_on_reset=False)
+    f.reset(np.array([1.0, 0.0, 0.0]), np.diag([0.5**2, 0.05**2, 1e-5]))
+    for _ in range(20):
+        f.predict(10.0, 0.0, 0.1)
+    sigma = f.scale_sigma
+    assert f.update_posterior(np.array([20.0, 0.0, 0.0]), np.diag([1e4, 1e4, 1e6]),
+                              consider_scale=True)
+    assert f.odometry_scale == 1.0 and f.scale_sigma == pytest.approx(sigma)
+    assert abs(f.pose[0] - 20.0) < 1e-9 and not f.scale_frozen
+
+
 def test_a_frozen_scale_thaws_at_a_match_that_pins_the_along_road_position():
     f = PoseFilter(freeze_scale_on_reset=True, scale_thaw_sigma_m=0.05)
     f.reset(np.zeros(3), np.diag([0.3**2, 0.05**2, 1e-5]))
@@ -517,6 +531,21 @@ def test_a_match_whose_paint_misses_the_map_is_not_ok_until_matches_fit_again(ro
     assert trusted(0.3, 0) == misses + [False, False] + [False] * (settle - 1) + [True]  # default
     assert trusted(0.3, 1) == misses + [True, False] + [False] * (settle - 3) + [True] * 3
     assert all(trusted(0.0, 0))
+
+
+def test_a_match_that_leaves_too_little_paint_on_the_maps_is_not_fused_when_asked(
+        road_cache, rng):
+    """localizer.paint_fuse_min_fit: a match that leaves less than that share of its frame's
+    paint on the map's markings (imagined paint, road points: held-out Karlsruhe s492's
+    heading) is noted by the paint check but not fused; off (0) every match is fused."""
+    true = np.array([62.0, 28.25, 0.02])
+    pts, cls = frame_points(road_cache, true, rng, outliers=0.1)  # a tenth of it off the map's
+    for fuse_min_fit, fused in ((0.0, True), (0.1, True), (0.99, False)):
+        loc = get_localizer(LocalizerConfig(paint_fuse_min_fit=fuse_min_fit), road_cache)
+        loc.ekf.reset(true, np.diag([0.3**2, 0.3**2, 1e-3]))
+        est = loc.process_frame(0, pts, cls)
+        assert est.diag["icp"] and est.diag["accepted"] == fused
+        assert len(loc.paint_check.since_start) == 1  # noted either way
 
 
 def test_the_paint_check_asks_the_class_unless_told_any_marking_will_do(road_cache, rng):
