@@ -606,8 +606,7 @@ class Localizer:
             return
         own = fit(here)
         best_fit, best = max(scored, key=lambda c: c[0])
-        if best_fit > own + self.paint_check.relocate_margin and far_apart(
-                best.pose, here, min_sep_m=min_sep_m, min_sep_rad=RIVAL_SEP_RAD):
+        if best_fit > own + self.paint_check.relocate_margin and _far(best.pose, here, min_sep_m):
             logger.warning("the paint fits %.2f at %s, %.2f here: restarting there", best_fit,
                            np.round(best.pose - here, 2), own)
             self._start_filter(best, scale=1.0)
@@ -651,8 +650,9 @@ def _gnss_offset_m(pose: np.ndarray, centre_of_yaw) -> float:
     return float(np.hypot(*(np.asarray(pose[:2]) - centre_of_yaw(pose[2]))))
 
 
-def _far(a: np.ndarray, b: np.ndarray) -> bool:
-    return far_apart(a, b, min_sep_rad=RIVAL_SEP_RAD)
+def _far(a: np.ndarray, b: np.ndarray, min_sep_m: float = 1.0) -> bool:
+    """More than min_sep_m or RIVAL_SEP_RAD apart (init.far_apart)."""
+    return far_apart(a, b, min_sep_m=min_sep_m, min_sep_rad=RIVAL_SEP_RAD)
 
 
 def _motion(v: float, w: float, dt: float) -> np.ndarray:
