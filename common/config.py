@@ -195,6 +195,13 @@ class LocalizerConfig:
     # Schmidt-Kalman "consider" form), so the match that thaws it learns from all the travel
     # since the start, not the last frame's (False: dropped at each update)
     scale_frozen_considered: bool = True
+    # what successive matches share of their error (the map's error of the marking they all
+    # see, the camera's pitch): a state, a Gauss-Markov process over the distance driven with
+    # this stationary sigma and correlation length, so that one marking seen over many frames
+    # counts as one fix (services/localizer/ekf.py MatchBias; 0 and 0: off, matches independent)
+    match_bias_sigma_m: float = 0.0
+    match_bias_yaw_deg: float = 0.0
+    match_bias_length_m: float = 20.0
     yaw_rate_sigma_dps: float = 0.3
     max_position_sigma_m: float = 1.0  # the filter trusts itself below this (re-init above)
     # integrity: a pose is reported ok only while its protection level (integrity_k x the

@@ -14,7 +14,7 @@ import numpy as np
 from common.classes import Cls
 from common.config import LocalizerConfig
 from common.geometry import se2_between, se2_compose, transform_points_2d, wrap_angle
-from services.localizer.ekf import PoseFilter
+from services.localizer.ekf import MatchBias, PoseFilter
 from services.localizer.gnss_check import GnssCheck
 from services.localizer.icp import Icp, IcpResult, IpmNoise
 from services.localizer.init import CoarseSearch, distinct, far_apart, fine_overlap
@@ -198,8 +198,8 @@ class Localizer:
         # the filter's prediction is ICP's prior: a frame that barely constrains the along-road
         # position cannot walk along the lines; road surface alone is not matched
         result = None if not markings else self.icp.register(
-            all_pts, class_slots(all_cls), self.ekf.pose, self.cache, all_jac,
-            prior_cov=self.ekf.cov, gate_start_m=gate)
+            all_pts, class_slots(all_cls), self.ekf.match_pose, self.cache, all_jac,
+            prior_cov=self.ekf.match_cov, gate_start_m=gate)
         self._remember(result, pts, cls, jac)
         share = self._anchor_share(result, pts, cls)
         unanchored = share is not None and share < self.paint_check.fuse_min_fit
@@ -697,6 +697,8 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         consistency_chi2=lc.integrity_consistency_chi2,
         scale_skips_inconsistent=lc.scale_skips_inconsistent,
         frozen_scale_considered=lc.scale_frozen_considered,
+        match_bias=MatchBias(lc.match_bias_sigma_m, math.radians(lc.match_bias_yaw_deg),
+                             lc.match_bias_length_m),
     )
     search = CoarseSearch(radius_m=lc.init_radius_m, seed=seed)
     return Localizer(

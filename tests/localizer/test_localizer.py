@@ -8,7 +8,7 @@ import pytest
 from common.classes import Cls
 from common.config import LocalizerConfig
 from services.eval.localization import localization_metrics
-from services.localizer.ekf import PoseFilter
+from services.localizer.ekf import MatchBias, PoseFilter
 from services.localizer.icp import Icp
 from services.localizer.init import CoarseSearch
 from services.localizer.localizer import get_localizer, replay
@@ -699,3 +699,41 @@ def test_a_frozen_scale_keeps_its_covariance_so_the_thawing_fix_learns_the_whole
     assert sigma > 0.7 > 0.2 > sigma_dropped
     assert considered.odometry_scale == pytest.approx(1 + 0.25 / 51, rel=0.1)
     assert considered.scale_sigma < 0.005 < 0.01 < dropped.scale_sigma
+
+
+def _one_marking_drive(match_bias, frames=30, offset_m=0.05):
+    """A car at 10 m/s whose odometry reads 1 % short, matched every 0.1 s to a marking the
+    map holds offset_m ahead of where it lies: the same error in every match."""
+    f = PoseFilter(freeze_scale_on_reset=False, match_bias=match_bias)
+    f.reset(np.zeros(3), np.diag([0.3**2, 0.1**2, math.radians(0.5) ** 2]))
+    info = np.diag([1 / 0.05**2, 1 / 0.02**2, 1e5])
+    for k in range(1, frames + 1):
+        f.predict(10.0, 0.0, 0.1)
+        S, prior = f.match_cov, f.match_pose
+        z = np.array([k * 1.01 + offset_m, 0.0, 0.0])
+        assert f.update_posterior(prior + np.linalg.solve(np.linalg.inv(S) + info,
+                                                          info @ (z - prior)), info)
+    return f
+
+
+def test_a_match_bias_of_no_size_is_the_filter_without_one():
+    """The shared error as a state changes nothing while its sigma is nil: the update through
+    the match's information is the closed form's."""
+    off, tiny = _one_marking_drive(MatchBias()), _one_marking_drive(MatchBias(1e-7))
+    assert off.dim == 6 and tiny.dim == 9
+    assert tiny.pose == pytest.approx(off.pose, abs=1e-9)
+    assert tiny.cov == pytest.approx(off.cov, abs=1e-12)
+    assert tiny.odometry_scale == pytest.approx(off.odometry_scale, abs=1e-9)
+
+
+def test_matches_of_one_marking_with_a_shared_error_do_not_shrink_the_sigma_below_it():
+    """Thirty matches of one marking, all 5 cm off: as independent fixes they claim the
+    along-road position to 2.5 cm and the scale to 0.2 %; with a shared error of 5 cm the
+    position's sigma stays near that error, and the pose's own error within it."""
+    off = _one_marking_drive(MatchBias())
+    shared = _one_marking_drive(MatchBias(0.05, 0.0, 20.0))
+    assert off.position_sigma_m < 0.03 < 0.05 < shared.position_sigma_m
+    assert abs(shared.pose[0] - 30 * 1.01) < shared.position_sigma_m
+    assert shared.scale_sigma > off.scale_sigma
+    # what the matches pinned is the pose plus the error, ICP's prior for the next one
+    assert shared.match_cov[0, 0] < 0.5 * shared.cov[0, 0]
