@@ -64,9 +64,9 @@ class MatchBias:
     `length_m`. The filter's own pose is then known only to within that shared error while one
     marking is in view, and the odometry scale learns from fixes `length_m` or more apart."""
 
-    sigma_m: float = 0.0
-    yaw_sigma_rad: float = 0.0
-    length_m: float = 20.0
+    sigma_m: float = LocalizerConfig.match_bias_sigma_m
+    yaw_sigma_rad: float = math.radians(LocalizerConfig.match_bias_yaw_deg)
+    length_m: float = LocalizerConfig.match_bias_length_m
 
     @property
     def on(self) -> bool:

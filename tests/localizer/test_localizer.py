@@ -15,6 +15,9 @@ from services.localizer.localizer import get_localizer, replay
 from services.localizer.map_cache import TileCache, class_slots
 from services.localizer.synthetic import fill_cache, frame_points, straight_road, synthetic_drive
 
+# the filter of independent matches, where a test is about the other states' mechanics
+INDEPENDENT = MatchBias(0.0)
+
 
 @pytest.fixture(scope="module")
 def road_cache():
@@ -221,7 +224,10 @@ def test_a_rival_that_matches_better_takes_over(rng):
     est = replay(loc, streams, lambda i: frames[i], on_estimate)
     assert seen["moved"] and seen["switched_at"] is not None and seen["switched_at"] < 136.0
     last = est[-1].pose - streams["frame_pose_true"][-1]
-    assert np.hypot(last[0], last[1]) < 0.2 and est[-1].ok and not loc.rivals
+    # ok again through the last second (on solid lines after the arrow, the along-road hold's
+    # drift brings the protection level to the alert limit as the drive ends)
+    assert np.hypot(last[0], last[1]) < 0.2 and not loc.rivals
+    assert sum(e.ok for e in est[-10:]) >= 8
 
 
 def test_a_lane_lines_only_match_holds_the_along_road_position_only_once_it_is_known(road_cache):
@@ -340,7 +346,7 @@ def test_a_frozen_scale_learns_nothing_from_a_start_pulled_back_along_the_road()
     none; thawed, the same correction moves the scale too."""
 
     def pulled(freeze):
-        f = PoseFilter(freeze_scale_on_reset=freeze)
+        f = PoseFilter(freeze_scale_on_reset=freeze, match_bias=INDEPENDENT)
         f.reset(np.array([1.0, 0.0, 0.0]), np.diag([0.5**2, 0.05**2, 1e-5]))
         for _ in range(20):
             f.predict(10.0, 0.0, 0.1)
@@ -362,7 +368,7 @@ def test_a_frozen_scale_learns_nothing_from_a_start_pulled_back_along_the_road()
 def test_a_considered_scale_keeps_its_estimate_and_variance_while_the_pose_moves():
     """update_posterior(consider_scale=True), as a held lane-lines-only match is fused with
     localizer.hold_considers_scale: a pseudo-measurement that says nothing about the wheel."""
-    f = PoseFilter(freeze_scale_on_reset=False)
+    f = PoseFilter(freeze_scale_on_reset=False, match_bias=INDEPENDENT)
     f.reset(np.array([1.0, 0.0, 0.0]), np.diag([0.5**2, 0.05**2, 1e-5]))
     for _ in range(20):
         f.predict(10.0, 0.0, 0.1)
@@ -444,7 +450,7 @@ def test_a_posterior_shift_is_judged_against_the_variance_its_measurement_remove
     prior = np.diag([0.05**2, 0.03**2, 1e-5])
     d2s = []
     for _ in range(400):
-        f = PoseFilter()
+        f = PoseFilter(match_bias=INDEPENDENT)
         f.reset(np.zeros(3), prior)
         info = np.diag([1 / 0.04**2, 1 / 0.02**2, 1e5])
         truth = rng.multivariate_normal(np.zeros(3), prior)
@@ -455,7 +461,7 @@ def test_a_posterior_shift_is_judged_against_the_variance_its_measurement_remove
         assert dof == 2
         d2s.append(d2)
     assert 1.6 < np.mean(d2s) < 2.4
-    f = PoseFilter()
+    f = PoseFilter(match_bias=INDEPENDENT)
     f.reset(np.zeros(3), np.diag([0.02**2, 0.02**2, 1e-5]))
     info = np.diag([1 / 0.05**2, 1 / 0.05**2, 1e5])
     assert f.update_posterior(np.array([0.05, 0.0, 0.0]), info)  # within the 16.27 gate
@@ -472,8 +478,8 @@ def test_a_pose_pulled_beyond_its_covariance_is_not_ok_for_a_second(road_cache):
     from services.localizer.icp import IcpResult
 
     def pulled(consistency_chi2):
-        loc = get_localizer(LocalizerConfig(integrity_consistency_chi2=consistency_chi2),
-                            road_cache)
+        loc = get_localizer(LocalizerConfig(integrity_consistency_chi2=consistency_chi2,
+                                            match_bias_sigma_m=0.0), road_cache)
         loc.ekf.reset(np.array([0.0, 28.25, 0.0]), np.diag([0.02**2, 0.02**2, 1e-6]))
         info = np.diag([1 / 0.05**2, 1 / 0.05**2, 1e5])
         consistent = []
@@ -659,7 +665,8 @@ def test_a_pull_beyond_the_covariance_moves_the_pose_but_not_the_scale():
     and the scale only where scale_skips_inconsistent is off; a pull within it moves both."""
 
     def pulled(dx, skips):
-        f = PoseFilter(scale_skips_inconsistent=skips, freeze_scale_on_reset=False)
+        f = PoseFilter(scale_skips_inconsistent=skips, freeze_scale_on_reset=False,
+                       match_bias=INDEPENDENT)
         f.reset(np.zeros(3), np.diag([0.03**2, 0.03**2, 1e-6]))
         for _ in range(5):
             f.predict(10.0, 0.0, 0.1)
@@ -719,7 +726,7 @@ def _one_marking_drive(match_bias, frames=30, offset_m=0.05):
 def test_a_match_bias_of_no_size_is_the_filter_without_one():
     """The shared error as a state changes nothing while its sigma is nil: the update through
     the match's information is the closed form's."""
-    off, tiny = _one_marking_drive(MatchBias()), _one_marking_drive(MatchBias(1e-7))
+    off, tiny = _one_marking_drive(MatchBias(0.0)), _one_marking_drive(MatchBias(1e-7))
     assert off.dim == 6 and tiny.dim == 9
     assert tiny.pose == pytest.approx(off.pose, abs=1e-9)
     assert tiny.cov == pytest.approx(off.cov, abs=1e-12)
@@ -730,7 +737,7 @@ def test_matches_of_one_marking_with_a_shared_error_do_not_shrink_the_sigma_belo
     """Thirty matches of one marking, all 5 cm off: as independent fixes they claim the
     along-road position to 2.5 cm and the scale to 0.2 %; with a shared error of 5 cm the
     position's sigma stays near that error, and the pose's own error within it."""
-    off = _one_marking_drive(MatchBias())
+    off = _one_marking_drive(MatchBias(0.0))
     shared = _one_marking_drive(MatchBias(0.05, 0.0, 20.0))
     assert off.position_sigma_m < 0.03 < 0.05 < shared.position_sigma_m
     assert abs(shared.pose[0] - 30 * 1.01) < shared.position_sigma_m
