@@ -346,12 +346,8 @@ class PoseFilter:
         P = self.ekf.P
         Ppp = P[:3, :3]
         shift = _pose_residual(pose, self.ekf.x.reshape(-1)[:3])
-        d2 = float(shift @ np.linalg.solve(Ppp, shift))
-        self.last_nis = d2
-        if d2 > gate_chi2:
-            self.rejections += 1
+        if not self._shift_passes(shift, Ppp, gate_chi2):
             return False
-        self.rejections = 0
         Ppp_post = np.linalg.inv(np.linalg.inv(Ppp) + information)
         Ppp_post = 0.5 * (Ppp_post + Ppp_post.T)
         self.last_shift_d2 = shift_consistency(shift[:2], (Ppp - Ppp_post)[:2, :2])
@@ -376,6 +372,16 @@ class PoseFilter:
         self.ekf.P = P_new
         return True
 
+    def _shift_passes(self, shift: np.ndarray, cov: np.ndarray, gate_chi2: float) -> bool:
+        """The gate of update_posterior: the fused pose's shift against its prior's covariance
+        (counting rejections)."""
+        self.last_nis = float(shift @ np.linalg.solve(cov, shift))
+        if self.last_nis > gate_chi2:
+            self.rejections += 1
+            return False
+        self.rejections = 0
+        return True
+
     def _shared_error_posterior(self, pose, information, gate_chi2: float,
                                 considered: bool) -> bool:
         """update_posterior where a match observes the pose plus the matches' shared error
@@ -389,12 +395,8 @@ class PoseFilter:
         x, H = self.ekf.x.reshape(-1), self._match_h()
         S = H @ self.ekf.P @ H.T
         shift = _pose_residual(pose, H @ x)
-        d2 = float(shift @ np.linalg.solve(S, shift))
-        self.last_nis = d2
-        if d2 > gate_chi2:
-            self.rejections += 1
+        if not self._shift_passes(shift, S, gate_chi2):
             return False
-        self.rejections = 0
         info = 0.5 * (information + information.T)
         w, V = np.linalg.eigh(info)
         seen = w > 1e-9 * max(float(w[-1]), 1e-300)
