@@ -457,14 +457,9 @@ class PoseFilter:
         but keeps its covariance with the rest of the state right (the Schmidt-Kalman "consider"
         form, Joseph-stabilized): the drift its error builds stays known, for the match that
         thaws it to learn from."""
-        P = self.ekf.P
-        y, S, _ = self.innovation(z, H, R)
-        gain = P @ H.T @ np.linalg.inv(S)
-        gain[3] = 0.0
-        self.ekf.x = (self.ekf.x.reshape(-1) + gain @ y).reshape(-1, 1)
-        self.ekf.x[2, 0] = float(wrap_angle(self.ekf.x[2, 0]))
-        keep = np.eye(len(P)) - gain @ H
-        self.ekf.P = keep @ P @ keep.T + gain @ R @ gain.T
+        y, _, _ = self.innovation(z, H, R)
+        x, self.ekf.P = _kalman_step(self.ekf.x.reshape(-1), self.ekf.P, y, H, R, True)
+        self.ekf.x = x.reshape(-1, 1)
 
     def _decouple_frozen_scale(self) -> None:
         """A frozen scale learns nothing from the next measurement."""
