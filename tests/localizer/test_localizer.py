@@ -744,3 +744,50 @@ def test_matches_of_one_marking_with_a_shared_error_do_not_shrink_the_sigma_belo
     assert shared.scale_sigma > off.scale_sigma
     # what the matches pinned is the pose plus the error, ICP's prior for the next one
     assert shared.match_cov[0, 0] < 0.5 * shared.cov[0, 0]
+
+
+def _turned_drive(bias_dps: float, seconds: float = 30.0) -> PoseFilter:
+    """A straight drive whose matches' heading turns at bias_dps while the gyro reads nothing."""
+    f = PoseFilter()
+    f.reset(np.zeros(3), np.diag([0.01, 0.01, math.radians(0.2) ** 2]))
+    true = np.zeros(3)
+    for _ in range(int(seconds * 10)):
+        f.predict(10.0, 0.0, 0.1)
+        true = true + [math.cos(true[2]), math.sin(true[2]), math.radians(bias_dps) * 0.1]
+        f.update_pose(true, np.diag([0.05**2, 0.05**2, math.radians(0.1) ** 2]))
+    return f
+
+
+def test_a_gyro_bias_beyond_its_prior_is_a_fault_a_restart_forgets():
+    """A gyro's true bias (0.05 deg/s) is learnt and kept across a restart; matches that turn
+    the heading at 0.8 deg/s (a start on the wrong paint) are read as a bias that no gyro here
+    has: the pose is not ok however small its covariance, and a restart begins the bias anew."""
+    gyro = _turned_drive(0.05)
+    assert gyro.ok and abs(math.degrees(gyro.gyro_bias_rps) + 0.05) < 0.02
+    gyro.reset(gyro.pose, np.diag([0.01, 0.01, 1e-4]))
+    assert abs(math.degrees(gyro.gyro_bias_rps) + 0.05) < 0.02
+
+    wrong = _turned_drive(0.8)
+    assert math.degrees(wrong.gyro_bias_rps) < -0.5 and wrong.position_sigma_m < 0.1
+    assert not wrong.ok
+    wrong.reset(wrong.pose, np.diag([0.01, 0.01, 1e-4]))
+    assert wrong.gyro_bias_rps == 0.0 and wrong.ok
+
+
+@pytest.mark.parametrize("pull_m, restarted", [(-2.0, False), (-8.0, True)])
+def test_a_scale_driven_to_its_limit_starts_again_from_its_prior(pull_m, restarted):
+    """100 m of odometry, then a match the pose's covariance lets through: a 2 m pull is 2 %
+    of scale, learnt; 8 m would be 8 %, no wheel's: the scale starts again from 1 and its
+    prior, and the pose takes the pull."""
+    f = PoseFilter(freeze_scale_on_reset=False, match_bias=INDEPENDENT,
+                   gate_prob_chi2={2: 1e6, 3: 1e6})
+    f.reset(np.zeros(3), np.diag([1e-4, 1e-4, 1e-6]))
+    for _ in range(100):
+        f.predict(10.0, 0.0, 0.1)
+    f.update_pose(np.array([100.0 + pull_m, 0.0, 0.0]), np.diag([1e-4, 1e-4, 1e-6]))
+    assert f.scale_restarts == int(restarted)
+    if restarted:
+        assert f.odometry_scale == 1.0 and f.scale_sigma == pytest.approx(f.scale_sigma0)
+    else:
+        assert f.odometry_scale == pytest.approx(0.98, abs=0.003)
+    assert f.pose[0] == pytest.approx(100.0 + pull_m, abs=0.05)
