@@ -16,7 +16,10 @@ The cars' figures stay RUN's.
 `roadmap eval --remap RUN --out DIR [--set vehicle.KEY=VALUE ...]`: RUN's maps made again
 offline from its mapping drives' stored frames with today's mapper and segmenter
 (services/eval/remap.py) and merged and scored anew: minutes for the suite, to judge a change of
-the vehicles' side of the map paired by drive. The cars' figures stay RUN's."""
+the vehicles' side of the map paired by drive. The cars' figures stay RUN's.
+
+`roadmap eval --compare A B [--out DIR]`: two runs paired by drive (services/eval/compare.py),
+to the terminal and DIR/compare.json."""
 
 import json
 import logging
@@ -26,6 +29,7 @@ from functools import partial
 from pathlib import Path
 
 from common.errors import ConfigError
+from services.eval.compare import compare_runs, format_comparison, read_eval
 from services.eval.figure import eval_figure
 from services.eval.remap import remap_drive
 from services.eval.remerge import remerge_drive
@@ -138,6 +142,8 @@ def _finished(run: Path, verb: str) -> tuple[list[dict], list[tuple[Path, dict]]
 
 def eval_command(args, cfg) -> int:
     out = Path(args.out)
+    if getattr(args, "compare", None):
+        return compare_command(args.compare, out)
     remerge, remap = getattr(args, "remerge", None), getattr(args, "remap", None)
     if sum(bool(r) for r in (args.relocalize, remerge, remap)) > 1:
         raise ConfigError("--relocalize, --remerge and --remap: one at a time")
@@ -163,3 +169,15 @@ def eval_command(args, cfg) -> int:
     sys.stdout.write(f"wrote {out / 'eval.json'} and {out / 'eval.png'}\n")
     return 0 if not result["summary"]["failed"] else 1
 
+
+def compare_command(runs: list[str], out: Path) -> int:
+    """`--compare A B`: the two runs paired by drive, to the terminal and OUT/compare.json."""
+    a, b = (read_eval(Path(r)) for r in runs)
+    comparison = {"a": str(runs[0]), "b": str(runs[1]), **compare_runs(a, b)}
+    if not comparison["paired"]:
+        raise ConfigError(f"--compare: {runs[0]} and {runs[1]} have no finished drive in common")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "compare.json").write_text(json.dumps(comparison, indent=1))
+    sys.stdout.write(format_comparison(comparison))
+    sys.stdout.write(f"wrote {out / 'compare.json'}\n")
+    return 0

@@ -11,7 +11,8 @@ GOAL = {"median_of_means": "<= paper", "p90_of_means": "<= 1.5 x paper",
 MAP_CLASSES = ("lane_line", "stop_line", "crosswalk", "ground_sign")
 
 
-def _dist(values: list[float]) -> dict:
+def distribution(values: list[float]) -> dict:
+    """Median, p90 and worst of values (None left out; all None when there are none)."""
     v = np.array([x for x in values if x is not None], float)
     if not len(v):
         return {"median": None, "p90": None, "worst": None}
@@ -26,7 +27,7 @@ def _min_median(values: list) -> dict:
 
 
 def _errors(scores: list[dict], over: str) -> dict:
-    return {k: _dist([s[over][k]["mean"] for s in scores]) for k in STATS}
+    return {k: distribution([s[over][k]["mean"] for s in scores]) for k in STATS}
 
 
 def _map_quality(reports: list[dict]) -> dict:
@@ -51,7 +52,7 @@ def _by_world(entries: list[dict]) -> dict:
         over = [s["markings_in_view"] for s in scores]
         row: dict = {"drives": len(scores)}
         for k in PAPER_MEAN:
-            d = _dist([o[k]["mean"] for o in over])
+            d = distribution([o[k]["mean"] for o in over])
             row[k] = {"median": d["median"], "worst": d["worst"]}
         row["availability_0_5m_min"] = _min_median([o["availability_0_5m"] for o in over])["min"]
         row["ok_share_median"] = _min_median([o.get("ok_share") for o in over])["median"]
@@ -86,7 +87,8 @@ def summarize(entries: list[dict]) -> dict:
         **_errors(scores, "markings_in_view"),
         "availability_0_5m": _min_median([s["markings_in_view"]["availability_0_5m"]
                                           for s in scores]),
-        "convergence_s": {k: v for k, v in _dist([s["convergence_s"] for s in scores]).items()
+        "convergence_s": {k: v for k, v in distribution([s["convergence_s"]
+                                                          for s in scores]).items()
                           if k != "p90"},
         "integrity_violations": sum(s["integrity_violations"] for s in scores),
         # the share of frames (markings in view, after convergence) the car said ok; runs

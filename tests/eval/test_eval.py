@@ -11,6 +11,7 @@ from common.camera import camera_from_config
 from common.config import RoadmapConfig
 from common.grid import TILE_CELLS
 from services.eval import map as ev
+from services.eval.compare import compare_runs, format_comparison
 from services.eval.replay import evict
 from services.eval.score import score_frames
 from services.eval.suite import Drive, parse_seeds, suite_drives
@@ -246,3 +247,42 @@ def test_roadmap_eval_runs_a_drive_scores_it_and_resumes(tmp_path):
     both = roadmap("eval", "--remap", str(out), "--remerge", str(out), "--out", str(rare),
                    timeout=60)
     assert both.returncode != 0 and "one at a time" in both.stderr
+    # the live run and the car on the true markings, paired by drive
+    res = roadmap("eval", "--compare", str(out), str(oracle), "--out", str(tmp_path / "cmp"))
+    assert res.returncode == 0, res.stderr[-3000:]
+    cmp = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert cmp["paired"] == 1 and cmp["metrics"]["x_m"]["mean_diff"] == pytest.approx(
+        truth["score"]["markings_in_view"]["x_m"]["mean"]
+        - live["markings_in_view"]["x_m"]["mean"])
+    assert "paired drives: 1" in res.stdout
+    bad = roadmap("eval", "--compare", str(out), str(tmp_path / "nowhere"))
+    assert bad.returncode != 0 and "no eval.json" in bad.stderr
+
+
+def _scored(world, seed, x, yaw=0.1, viol=0):
+    seen = {"x_m": {"mean": x}, "y_m": {"mean": 0.03}, "yaw_deg": {"mean": yaw},
+            "availability_0_5m": 1.0 if not viol else 0.9}
+    return {"world": world, "seed": seed, "ok": True,
+            "score": {"markings_in_view": seen, "integrity_violations": viol,
+                      "convergence_s": 2.0}}
+
+
+def test_two_runs_are_compared_drive_by_drive():
+    """Drives pair by world and seed; a drive only one side finished is listed, not paired;
+    differences within the tolerance count neither way; a drive newly with violation frames
+    is named."""
+    a = {"drives": [_scored("town", 1, 0.05), _scored("town", 2, 0.10),
+                    _scored("av2:/d/3bff", 1, 0.20), _scored("town", 3, 0.07),
+                    {"world": "town", "seed": 4, "ok": False}]}
+    b = {"drives": [_scored("town", 1, 0.052), _scored("town", 2, 0.06, yaw=0.2),
+                    _scored("av2:/d/3bff", 1, 0.25, viol=3), _scored("town", 9, 0.01)]}
+    c = compare_runs(a, b)
+    assert c["paired"] == 3 and c["only_a"] == ["town s3"] and c["only_b"] == ["town s9"]
+    x = c["metrics"]["x_m"]
+    assert (x["better"], x["worse"]) == (1, 1)
+    assert x["mean_diff"] == pytest.approx((0.002 - 0.04 + 0.05) / 3)
+    assert x["a"]["worst"] == 0.20 and x["b"]["worst"] == 0.25
+    assert c["metrics"]["yaw_deg"]["worse"] == 1 and c["metrics"]["y_m"]["t"] is None
+    assert c["integrity_violations"] == {"a": 0, "b": 3, "new_on_b": ["av2:/d/3bff s1"]}
+    assert c["availability_0_5m_min"] == {"a": 1.0, "b": 0.9}
+    assert "new on: av2:/d/3bff s1" in format_comparison(c)

@@ -1,0 +1,116 @@
+"""Two evaluation runs paired by drive: `roadmap eval --compare A B [--out DIR]`.
+
+A change to the car is kept when the suite, paired by drive, says it helps: one drive's numbers
+move by 15-20 % from noise alone, so only the same drive (world and seed: the same route, fleet,
+map and sensor noise) scored both ways tells a change from chance. Each run is a directory with
+an eval.json (`roadmap eval`, `--relocalize`) or the file itself.
+
+Per metric (the per-drive means over frames with a marking in view, after convergence): each
+side's median / p90 / worst over the paired drives, the mean of the per-drive differences b - a,
+their paired t, and how many drives b is better or worse on by more than a tolerance (noise a
+change should not be credited with). Integrity: each side's violation frames, and the drives
+with violation frames on b that had none on a. Drives only one side finished are listed, not
+paired."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from common.errors import ConfigError
+from services.eval.summary import distribution
+
+METRICS = ("x_m", "y_m", "yaw_deg")
+# per-drive differences within these count neither way
+TOLERANCE = {"x_m": 0.005, "y_m": 0.005, "yaw_deg": 0.01}
+
+
+def read_eval(path: Path) -> dict:
+    """eval.json of a run directory, or the file itself."""
+    path = Path(path)
+    file = path / "eval.json" if path.is_dir() else path
+    try:
+        data = json.loads(file.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"--compare: no eval.json at {path}") from None
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"--compare: {file} is not JSON ({exc})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("drives"), list):
+        raise ConfigError(f"--compare: {file} has no drives (not a roadmap eval.json)")
+    return data
+
+
+def drive_scores(data: dict) -> dict[str, dict]:
+    """'world s<seed>' -> the drive's per-drive means, violation frames, availability and
+    convergence, for every finished drive."""
+    out = {}
+    for e in data["drives"]:
+        score = e.get("score")
+        if not e.get("ok") or not score:
+            continue
+        seen = score["markings_in_view"]
+        out[f"{e['world']} s{e['seed']}"] = {
+            **{m: seen[m]["mean"] for m in METRICS},
+            "integrity_violations": int(score["integrity_violations"]),
+            "availability_0_5m": seen["availability_0_5m"],
+            "convergence_s": score.get("convergence_s"),
+        }
+    return out
+
+
+def _paired_t(d: np.ndarray) -> float | None:
+    if len(d) < 2 or float(np.var(d)) == 0.0:
+        return None
+    return float(d.mean() / (d.std(ddof=1) / np.sqrt(len(d))))
+
+
+def _metric(a: dict, b: dict, keys: list[str], m: str) -> dict:
+    pairs = [(a[k][m], b[k][m]) for k in keys if a[k][m] is not None and b[k][m] is not None]
+    va, vb = (np.array([p[i] for p in pairs], float) for i in (0, 1))
+    d = vb - va
+    tol = TOLERANCE[m]
+    return {"a": distribution(list(va)), "b": distribution(list(vb)), "drives": len(pairs),
+            "mean_diff": float(d.mean()) if len(d) else None, "t": _paired_t(d),
+            "better": int(np.sum(d < -tol)), "worse": int(np.sum(d > tol)), "tolerance": tol}
+
+
+def compare_runs(a_data: dict, b_data: dict) -> dict:
+    """The comparison of two eval.json contents (a: before, b: after), paired by drive."""
+    a, b = drive_scores(a_data), drive_scores(b_data)
+    keys = sorted(set(a) & set(b))
+    viol = {side: sum(s[k]["integrity_violations"] for k in keys) for side, s in (("a", a),
+                                                                                  ("b", b))}
+    return {
+        "paired": len(keys),
+        "only_a": sorted(set(a) - set(b)), "only_b": sorted(set(b) - set(a)),
+        "metrics": {m: _metric(a, b, keys, m) for m in METRICS},
+        "integrity_violations": {
+            **viol,
+            "new_on_b": [k for k in keys if b[k]["integrity_violations"]
+                         and not a[k]["integrity_violations"]]},
+        "availability_0_5m_min": {side: min((s[k]["availability_0_5m"] for k in keys),
+                                            default=None) for side, s in (("a", a), ("b", b))},
+        "per_drive": {k: {"a": a[k], "b": b[k]} for k in keys},
+    }
+
+
+def format_comparison(c: dict) -> str:
+    """A few lines for the terminal."""
+    lines = [f"paired drives: {c['paired']}"
+             + (f" (only in a: {len(c['only_a'])}, only in b: {len(c['only_b'])})"
+                if c["only_a"] or c["only_b"] else "")]
+    for m, r in c["metrics"].items():
+        if not r["drives"]:
+            continue
+        dist = "  ".join(f"{q} {r['a'][q]:.3f} -> {r['b'][q]:.3f}" for q in ("median", "p90",
+                                                                             "worst"))
+        t = "-" if r["t"] is None else f"{r['t']:+.2f}"
+        lines.append(f"{m:8s} {dist}  mean diff {r['mean_diff']:+.4f} (t {t}), better on "
+                     f"{r['better']}, worse on {r['worse']} (beyond {r['tolerance']})")
+    v = c["integrity_violations"]
+    lines.append(f"integrity violation frames {v['a']} -> {v['b']}"
+                 + (f"; new on: {', '.join(v['new_on_b'])}" if v["new_on_b"] else ""))
+    av = c["availability_0_5m_min"]
+    if av["a"] is not None:
+        lines.append(f"availability min {av['a']:.3f} -> {av['b']:.3f}")
+    return "\n".join(lines) + "\n"
