@@ -9,7 +9,8 @@ Per metric (the per-drive means over frames with a marking in view, after conver
 side's median / p90 / worst over the paired drives, the mean of the per-drive differences b - a,
 their paired t, and how many drives b is better or worse on by more than a tolerance (noise a
 change should not be credited with). Integrity: each side's violation frames, and the drives
-with violation frames on b that had none on a. Drives only one side finished are listed, not
+with violation frames on b that had none on a; what it costs: the least availability and the
+share of frames said ok. Drives only one side finished are listed, not
 paired."""
 
 import json
@@ -18,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from common.errors import ConfigError
-from services.eval.summary import distribution
+from services.eval.summary import distribution, min_median
 
 METRICS = ("x_m", "y_m", "yaw_deg")
 # per-drive differences within these count neither way
@@ -53,6 +54,7 @@ def drive_scores(data: dict) -> dict[str, dict]:
             **{m: seen[m]["mean"] for m in METRICS},
             "integrity_violations": int(score["integrity_violations"]),
             "availability_0_5m": seen["availability_0_5m"],
+            "ok_share": seen.get("ok_share"),  # runs scored before 2026-12-07: none
             "convergence_s": score.get("convergence_s"),
         }
     return out
@@ -90,6 +92,8 @@ def compare_runs(a_data: dict, b_data: dict) -> dict:
                          and not a[k]["integrity_violations"]]},
         "availability_0_5m_min": {side: min((s[k]["availability_0_5m"] for k in keys),
                                             default=None) for side, s in (("a", a), ("b", b))},
+        "ok_share": {side: min_median([s[k]["ok_share"] for k in keys])
+                     for side, s in (("a", a), ("b", b))},
         "per_drive": {k: {"a": a[k], "b": b[k]} for k in keys},
     }
 
@@ -113,4 +117,8 @@ def format_comparison(c: dict) -> str:
     av = c["availability_0_5m_min"]
     if av["a"] is not None:
         lines.append(f"availability min {av['a']:.3f} -> {av['b']:.3f}")
+    ok = c["ok_share"]
+    if ok["a"]["median"] is not None and ok["b"]["median"] is not None:
+        lines.append(f"share of frames said ok, min / median: {ok['a']['min']:.3f} / "
+                     f"{ok['a']['median']:.3f} -> {ok['b']['min']:.3f} / {ok['b']['median']:.3f}")
     return "\n".join(lines) + "\n"

@@ -20,7 +20,8 @@ def distribution(values: list[float]) -> dict:
             "worst": float(v.max())}
 
 
-def _min_median(values: list) -> dict:
+def min_median(values: list) -> dict:
+    """Least and median of values (None left out)."""
     v = np.array([x for x in values if x is not None], float)
     return ({"min": None, "median": None} if not len(v)
             else {"min": float(v.min()), "median": float(np.median(v))})
@@ -34,7 +35,7 @@ def _map_quality(reports: list[dict]) -> dict:
     out = {}
     for cls in MAP_CLASSES:
         rows = [r["map"]["per_class"].get(cls) or {} for r in reports]
-        out[cls] = {m: _min_median([row.get(m) for row in rows]) for m in ("precision", "recall")}
+        out[cls] = {m: min_median([row.get(m) for row in rows]) for m in ("precision", "recall")}
     return out
 
 
@@ -54,8 +55,8 @@ def _by_world(entries: list[dict]) -> dict:
         for k in PAPER_MEAN:
             d = distribution([o[k]["mean"] for o in over])
             row[k] = {"median": d["median"], "worst": d["worst"]}
-        row["availability_0_5m_min"] = _min_median([o["availability_0_5m"] for o in over])["min"]
-        row["ok_share_median"] = _min_median([o.get("ok_share") for o in over])["median"]
+        row["availability_0_5m_min"] = min_median([o["availability_0_5m"] for o in over])["min"]
+        row["ok_share_median"] = min_median([o.get("ok_share") for o in over])["median"]
         row["integrity_violations"] = sum(s["integrity_violations"] for s in scores)
         out[world] = row
     return out
@@ -85,7 +86,7 @@ def summarize(entries: list[dict]) -> dict:
     summary = {
         "drives": len(entries), "failed": len(entries) - len(ok),
         **_errors(scores, "markings_in_view"),
-        "availability_0_5m": _min_median([s["markings_in_view"]["availability_0_5m"]
+        "availability_0_5m": min_median([s["markings_in_view"]["availability_0_5m"]
                                           for s in scores]),
         "convergence_s": {k: v for k, v in distribution([s["convergence_s"]
                                                           for s in scores]).items()
@@ -93,12 +94,12 @@ def summarize(entries: list[dict]) -> dict:
         "integrity_violations": sum(s["integrity_violations"] for s in scores),
         # the share of frames (markings in view, after convergence) the car said ok; runs
         # scored before 2026-12-07 (second stop) have none
-        "ok_share": _min_median([s["markings_in_view"].get("ok_share") for s in scores]),
+        "ok_share": min_median([s["markings_in_view"].get("ok_share") for s in scores]),
         "frames_without_markings": (sum(s["frames_without_markings"] for s in scores) / frames
                                     if frames else None),
         "map": _map_quality(reports),
         "all_frames": {**_errors(scores, "all_frames"),
-                       "availability_0_5m": _min_median([s["all_frames"]["availability_0_5m"]
+                       "availability_0_5m": min_median([s["all_frames"]["availability_0_5m"]
                                                          for s in scores])},
         "paper_mean": PAPER_MEAN,
         "by_world": _by_world(entries),
@@ -107,7 +108,7 @@ def summarize(entries: list[dict]) -> dict:
     if since:
         summary["from_first_marking"] = {
             **_errors(since, "from_first_marking"),
-            "availability_0_5m": _min_median([s["from_first_marking"]["availability_0_5m"]
+            "availability_0_5m": min_median([s["from_first_marking"]["availability_0_5m"]
                                               for s in since])}
     summary["convergence_s"]["max"] = summary["convergence_s"].pop("worst")
     never = sum(s["convergence_s"] is None for s in scores)

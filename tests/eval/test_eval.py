@@ -261,7 +261,7 @@ def test_roadmap_eval_runs_a_drive_scores_it_and_resumes(tmp_path):
 
 def _scored(world, seed, x, yaw=0.1, viol=0):
     seen = {"x_m": {"mean": x}, "y_m": {"mean": 0.03}, "yaw_deg": {"mean": yaw},
-            "availability_0_5m": 1.0 if not viol else 0.9}
+            "availability_0_5m": 1.0 if not viol else 0.9, "ok_share": 0.8 if not viol else 0.5}
     return {"world": world, "seed": seed, "ok": True,
             "score": {"markings_in_view": seen, "integrity_violations": viol,
                       "convergence_s": 2.0}}
@@ -285,4 +285,5 @@ def test_two_runs_are_compared_drive_by_drive():
     assert c["metrics"]["yaw_deg"]["worse"] == 1 and c["metrics"]["y_m"]["t"] is None
     assert c["integrity_violations"] == {"a": 0, "b": 3, "new_on_b": ["av2:/d/3bff s1"]}
     assert c["availability_0_5m_min"] == {"a": 1.0, "b": 0.9}
+    assert c["ok_share"]["a"] == {"min": 0.8, "median": 0.8} and c["ok_share"]["b"]["min"] == 0.5
     assert "new on: av2:/d/3bff s1" in format_comparison(c)
