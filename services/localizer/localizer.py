@@ -135,8 +135,9 @@ class Localizer:
         self.settled_matches, self.pull_since_gap = 0, np.zeros(2)
         # ... and their net correction since markings last came back after a gap: a gap while
         # still settling does not restart the sum above, in which the pulls before and after it
-        # can cancel (0.35 m back before a gap, 0.5 m forward after it: 3bff s422)
-        self.pull_since_back = np.zeros(2)
+        # can cancel (0.35 m back before a gap, 0.5 m forward after it: 3bff s422); and the
+        # accepted matches since then
+        self.pull_since_back, self.matches_since_back = np.zeros(2), 0
         # frames since a match shifted the pose beyond what the filter's covariance allowed
         self.since_inconsistent = self.settle_frames
 
@@ -232,7 +233,7 @@ class Localizer:
         accepted = result is not None and self.ekf.update_posterior(
             result.pose, info, consider_scale=self.hold_considers_scale and held)
         if accepted and self.unmatched_frames >= self.settle_frames:  # markings are back
-            self.pull_since_back = np.zeros(2)
+            self.pull_since_back, self.matches_since_back = np.zeros(2), 0
             if self.settled_matches >= self.reacquire_settle_frames:  # (else still settling)
                 self.settled_matches, self.pull_since_gap = 0, np.zeros(2)
         self.since_inconsistent += 1
@@ -240,6 +241,7 @@ class Localizer:
             self.since_inconsistent = 0
         correction = self.ekf.pose[:2] - predicted
         self.settled_matches += int(accepted)
+        self.matches_since_back += int(accepted)
         self.pull_since_gap = self.pull_since_gap + correction
         self.pull_since_back = self.pull_since_back + correction
         self.corrections.append(correction)
@@ -316,10 +318,15 @@ class Localizer:
         window of one second sees only the walk's speed), and a dead-reckoned stretch before
         they settle keeps what they did to the heading."""
         recent = float(np.hypot(*np.sum(self.corrections, axis=0))) if self.corrections else 0.0
-        if self.settled_matches >= self.reacquire_settle_frames:
-            return recent
-        return max(recent, *(float(np.hypot(*p)) for p in (self.pull_since_gap,
-                                                            self.pull_since_back)))
+        back = float(np.hypot(*self.pull_since_back))
+        if self.settled_matches < self.reacquire_settle_frames:
+            return max(recent, float(np.hypot(*self.pull_since_gap)), back)
+        # markings back while the count above was still running (it is not restarted then, so
+        # that the start's pulls stay in the sum): the pulls since then count for as many
+        # matches on their own (Karlsruhe s492: back after 4 s at the 49th match, settled at the
+        # 50th, ok 0.5 m behind with 0.25 m of pull since the gap not counted)
+        return max(recent, back) if self.matches_since_back < self.reacquire_settle_frames \
+            else recent
 
     # -- steps ------------------------------------------------------------------------------
 
@@ -497,7 +504,7 @@ class Localizer:
         self.corrections.clear()
         self.gnss_check.reset()
         self.settled_matches, self.pull_since_gap = 0, np.zeros(2)
-        self.pull_since_back = np.zeros(2)
+        self.pull_since_back, self.matches_since_back = np.zeros(2), 0
         self.inits += 1
         logger.info("initialized at %s (init #%d)", np.round(res.pose, 2), self.inits)
 

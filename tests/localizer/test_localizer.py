@@ -659,6 +659,38 @@ def test_pulls_before_and_after_a_gap_while_settling_do_not_cancel(road_cache):
     assert loc._pulled_m() > 0.45
 
 
+def test_the_pulls_after_a_gap_count_for_as_many_matches_as_a_start(road_cache):
+    """Markings come back after a gap at the 49th match since the start: the count since the
+    start runs out at the next match, but the pull since the gap keeps counting until as many
+    matches were accepted after it (Karlsruhe s492: ok 0.5 m behind, 0.25 m pulled)."""
+    from services.localizer.icp import IcpResult
+
+    loc = get_localizer(LocalizerConfig(), road_cache)
+    loc.ekf.reset(np.array([0.0, 28.25, 0.0]), np.diag([0.5**2, 0.05**2, 1e-6]))
+    info = np.diag([1 / 0.1**2, 1e4, 1e6])
+    settle = LocalizerConfig.reacquire_settle_frames
+
+    def pull(dx):
+        pose = loc.ekf.pose + [dx, 0.0, 0.0]
+        res = IcpResult(pose, np.linalg.inv(info), 500, 500, 0.02, False,
+                        np.array([1.0, 0.0, 0.0]), np.zeros(3), 5, information=info)
+        assert loc._fuse(res)
+
+    for _ in range(settle - 1):
+        pull(0.0)
+    for _ in range(LocalizerConfig.settle_frames):
+        assert not loc._fuse(None)
+    for _ in range(LocalizerConfig.settle_frames):
+        pull(0.03)
+    for _ in range(LocalizerConfig.settle_frames):  # the pull leaves the last second's window
+        pull(0.0)
+    assert loc.settled_matches >= settle
+    assert loc._pulled_m() == pytest.approx(0.3, abs=0.03)
+    for _ in range(settle - 2 * LocalizerConfig.settle_frames):
+        pull(0.0)
+    assert loc._pulled_m() < 0.01  # settled since the gap too
+
+
 def test_a_pull_beyond_the_covariance_moves_the_pose_but_not_the_scale():
     """After 5 m of driving the scale and the along-road position are correlated: a match
     that pulls the pose 0.25 m, far more than the variance it removes allows, moves the pose,
