@@ -325,8 +325,9 @@ class Localizer:
         # that the start's pulls stay in the sum): the pulls since then count for as many
         # matches on their own (Karlsruhe s492: back after 4 s at the 49th match, settled at the
         # 50th, ok 0.5 m behind with 0.25 m of pull since the gap not counted)
-        return max(recent, back) if self.matches_since_back < self.reacquire_settle_frames \
-            else recent
+        if self.matches_since_back < self.reacquire_settle_frames:
+            return max(recent, back)
+        return recent
 
     # -- steps ------------------------------------------------------------------------------
 
