@@ -164,7 +164,8 @@ class LocalizerConfig:
     # ... and the odometry scale learns nothing from a held match (its estimate and variance
     # stand; services/localizer/ekf.py consider form): summed frame after frame, the hold's
     # pseudo-measurement shrank the scale's sigma to 0.07 % while it was 1.2 % wrong (off:
-    # mixed on held-out drives, docs/RESULTS.md, "491-493")
+    # mixed on held-out drives, docs/RESULTS.md, "491-493"; mixed again with the matches'
+    # shared error, "Fault limits on the gyro bias and the scale")
     hold_considers_scale: bool = False
     # far points' residuals along the viewing ray weigh less: a pixel is r^2 / (f h) m there
     ipm_sigma_px: float = 1.0  # label noise of the IPM points, pixels (0: off; IpmNoise)
