@@ -162,15 +162,19 @@ def paired_comparison(a: dict[int, dict], b: dict[int, dict]) -> dict:
         mean_b = sum(vb) / len(vb) if seeds else None
         out["a"][m], out["b"][m] = mean_a, mean_b
         out["b_vs_a"][m] = mean_b / mean_a - 1 if seeds and mean_a else None
-        d = [y - x for x, y in zip(va, vb, strict=True)]
-        t = None
-        if len(d) >= 2:
-            mean_d = sum(d) / len(d)
-            var = sum((x - mean_d) ** 2 for x in d) / (len(d) - 1)
-            if var > 0:
-                t = mean_d / (var / len(d)) ** 0.5
-        out["t"][m] = t
+        out["t"][m] = paired_t([y - x for x, y in zip(va, vb, strict=True)])
     return out
+
+
+def paired_t(differences: list[float]) -> float | None:
+    """The paired t of per-pair differences: their mean over its standard error (None with
+    fewer than two pairs or where every difference is the same)."""
+    d = [float(x) for x in differences]
+    if len(d) < 2:
+        return None
+    mean_d = sum(d) / len(d)
+    var = sum((x - mean_d) ** 2 for x in d) / (len(d) - 1)
+    return mean_d / (var / len(d)) ** 0.5 if var > 0 else None
 
 
 def environment() -> dict:

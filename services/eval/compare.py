@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from common.errors import ConfigError
+from services.bench.runner import paired_t
 from services.eval.summary import distribution, min_median
 
 METRICS = ("x_m", "y_m", "yaw_deg")
@@ -60,19 +61,13 @@ def drive_scores(data: dict) -> dict[str, dict]:
     return out
 
 
-def _paired_t(d: np.ndarray) -> float | None:
-    if len(d) < 2 or float(np.var(d)) == 0.0:
-        return None
-    return float(d.mean() / (d.std(ddof=1) / np.sqrt(len(d))))
-
-
 def _metric(a: dict, b: dict, keys: list[str], m: str) -> dict:
     pairs = [(a[k][m], b[k][m]) for k in keys if a[k][m] is not None and b[k][m] is not None]
     va, vb = (np.array([p[i] for p in pairs], float) for i in (0, 1))
     d = vb - va
     tol = TOLERANCE[m]
     return {"a": distribution(list(va)), "b": distribution(list(vb)), "drives": len(pairs),
-            "mean_diff": float(d.mean()) if len(d) else None, "t": _paired_t(d),
+            "mean_diff": float(d.mean()) if len(d) else None, "t": paired_t(list(d)),
             "better": int(np.sum(d < -tol)), "worse": int(np.sum(d > tol)), "tolerance": tol}
 
 
