@@ -206,10 +206,6 @@ class LocalizerConfig:
     match_bias_yaw_deg: float = 0.0
     match_bias_length_m: float = 20.0
     yaw_rate_sigma_dps: float = 0.3
-    # the first this many matches after a gap (settle_frames frames without one) move the
-    # heading but not the gyro bias (the Schmidt "consider" form; 0: off): what a gap's
-    # dead reckoning left in the heading is no sure measure of the gyro (Localizer._fuse)
-    gyro_bias_settle_matches: int = 10
     max_position_sigma_m: float = 1.0  # the filter trusts itself below this (re-init above)
     # integrity: a pose is reported ok only while its protection level (integrity_k x the
     # position sigma) lies within the alert limit: a lane-level error must never read as ok

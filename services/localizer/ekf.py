@@ -95,15 +95,13 @@ def _pose_residual(a, b):
     return r
 
 
-SCALE, GYRO_BIAS = 3, 4  # state indices
-
-
-def _kalman_step(x, P, z, H, R, consider: tuple[int, ...] = ()):
-    """A linear update with innovation z (already z - H x) in the Joseph form; the states in
-    `consider` (e.g. SCALE) keep their estimate and variance (Schmidt)."""
+def _kalman_step(x, P, z, H, R, consider_scale: bool):
+    """A linear update with innovation z (already z - H x) in the Joseph form; with
+    consider_scale the odometry scale (state 3) keeps its estimate and variance (Schmidt)."""
     S = H @ P @ H.T + R
     gain = np.linalg.solve(S, H @ P).T
-    gain[list(consider)] = 0.0
+    if consider_scale:
+        gain[3] = 0.0
     x = x + gain @ z
     x[2] = float(wrap_angle(x[2]))
     x[3] = _clamp_scale(x[3])
@@ -342,7 +340,7 @@ class PoseFilter:
 
     def update_posterior(
         self, pose: np.ndarray, information: np.ndarray, gate_chi2: float = 16.27,
-        consider_scale: bool = False, consider_bias: bool = False,
+        consider_scale: bool = False,
     ) -> bool:
         """Accept a pose already fused with this filter's prediction (ICP with the prediction as
         its prior) together with the information its measurements added (3x3 over the pose).
@@ -351,17 +349,14 @@ class PoseFilter:
         its prior correlation (it is observed only through the pose). Gated by the shift of the
         pose relative to the prediction's covariance. With `consider_scale` the scale's estimate
         and variance stand, as for a frozen scale (information that is no measurement of the
-        wheel: a hold of the along-road position at the prediction); with `consider_bias` the
-        gyro bias's do (the first matches after a gap: what they do to the heading is no
-        measurement of the gyro, Localizer.bias_settle_matches)."""
+        wheel: a hold of the along-road position at the prediction)."""
         if not self.initialized:
             return False
         considered = (self.scale_frozen and self.frozen_scale_considered) or consider_scale
         if not considered:
             self._decouple_frozen_scale()
-        consider = ((SCALE,) if considered else ()) + ((GYRO_BIAS,) if consider_bias else ())
-        if self.dim > 6 or consider_bias:  # (the general form, shared error or not)
-            return self._shared_error_posterior(pose, information, gate_chi2, consider)
+        if self.dim > 6:
+            return self._shared_error_posterior(pose, information, gate_chi2, considered)
         P = self.ekf.P
         Ppp = P[:3, :3]
         shift = _pose_residual(pose, self.ekf.x.reshape(-1)[:3])
@@ -403,7 +398,7 @@ class PoseFilter:
         return True
 
     def _shared_error_posterior(self, pose, information, gate_chi2: float,
-                                consider: tuple[int, ...]) -> bool:
+                                considered: bool) -> bool:
         """update_posterior where a match observes the pose plus the matches' shared error
         (MatchBias), and ICP had match_pose and match_cov as its prior.
 
@@ -411,9 +406,7 @@ class PoseFilter:
         the prior's covariance and I the points' information. That is a measurement z of the
         match along the directions I observes (its eigenvectors), each with variance 1 / its
         eigenvalue, and a Kalman update of the whole state with it splits the shift between the
-        pose (and, through their covariance, the scale and the rest) and the shared error. The
-        states in `consider` keep their estimate and variance (_kalman_step). Without the shared
-        error (dim 6) it is the same update, the one form that can consider the gyro bias."""
+        pose (and, through their covariance, the scale and the rest) and the shared error."""
         x, H = self.ekf.x.reshape(-1), self._match_h()
         S = H @ self.ekf.P @ H.T
         shift = _pose_residual(pose, H @ x)
@@ -426,11 +419,11 @@ class PoseFilter:
         z = V.T @ (np.linalg.solve(S, shift) + info @ shift) / w
         Hz, R = V.T @ H, np.diag(1.0 / w)
         P_prior = self.ekf.P.copy()
-        x_new, P_new = _kalman_step(x, P_prior, z, Hz, R, consider)
+        x_new, P_new = _kalman_step(x, P_prior, z, Hz, R, considered)
         self.last_shift_d2 = shift_consistency(x_new[:2] - x[:2], (P_prior - P_new)[:2, :2])
         if self.scale_skips_inconsistent and self.shift_inconsistent:
             self._decouple_scale()  # a pull the covariance cannot explain is not the wheel's
-            x_new, P_new = _kalman_step(x, self.ekf.P, z, Hz, R, consider)
+            x_new, P_new = _kalman_step(x, self.ekf.P, z, Hz, R, considered)
         self.ekf.x, self.ekf.P = x_new.reshape(-1, 1), P_new
         self._restart_faulty_scale()
         return True
@@ -481,7 +474,7 @@ class PoseFilter:
         form, Joseph-stabilized): the drift its error builds stays known, for the match that
         thaws it to learn from."""
         y, _, _ = self.innovation(z, H, R)
-        x, self.ekf.P = _kalman_step(self.ekf.x.reshape(-1), self.ekf.P, y, H, R, (SCALE,))
+        x, self.ekf.P = _kalman_step(self.ekf.x.reshape(-1), self.ekf.P, y, H, R, True)
         self.ekf.x = x.reshape(-1, 1)
 
     def _restart_faulty_scale(self) -> None:

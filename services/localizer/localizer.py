@@ -45,7 +45,9 @@ class Localizer:
         self,
         cache: TileCache,
         *,
-        icp: Icp, ekf: PoseFilter, search: CoarseSearch,
+        icp: Icp,
+        ekf: PoseFilter,
+        search: CoarseSearch,
         max_points: int = LocalizerConfig.max_points,
         road_fraction: float = LocalizerConfig.road_fraction,
         gnss_inflate: float = LocalizerConfig.gnss_inflate,
@@ -76,7 +78,6 @@ class Localizer:
         init_gnss_tiebreak: bool = LocalizerConfig.init_gnss_tiebreak,
         paint_check: PaintCheck | None = None, seed: int = 0,
         hold_considers_scale: bool = LocalizerConfig.hold_considers_scale,
-        bias_settle_matches: int = LocalizerConfig.gyro_bias_settle_matches,
     ):
         self.cache, self.icp, self.ekf, self.search = cache, icp, ekf, search
         self.max_points, self.road_fraction = max_points, road_fraction
@@ -98,8 +99,7 @@ class Localizer:
         self.hold_drift_per_m, self.dead_reckoning_drift_per_m, self.along_fix_sigma_m = (
             hold_drift_per_m, dead_reckoning_drift_per_m, along_fix_sigma_m)
         self.paint_check = paint_check or PaintCheck()
-        self.hold_considers_scale, self.bias_settle_matches = (hold_considers_scale,
-                                                               bias_settle_matches)
+        self.hold_considers_scale = hold_considers_scale
         self._start(seed)
 
     def _start(self, seed: int) -> None:
@@ -122,7 +122,8 @@ class Localizer:
         self.waiting_frames = 0
         # the along-road position since the last match that observed it: the travel then, and
         # whether the hold has kept it since (Localizer._held, integrity_sigma_m)
-        self.fix_travel_m, self.holding = 0.0, False
+        self.fix_travel_m = 0.0
+        self.holding = False
         self.sure_fix_travel_m = 0.0  # ... and at the last match that pinned it (along_fix_sigma_m)
         self.unmatched_frames = 0  # frames since the last accepted match
         self.match_travel_m = 0.0  # the travel then
@@ -139,12 +140,6 @@ class Localizer:
         self.pull_since_back, self.matches_since_back = np.zeros(2), 0
         # frames since a match shifted the pose beyond what the filter's covariance allowed
         self.since_inconsistent = self.settle_frames
-        # the first matches after a gap turn the heading without teaching the gyro bias: the
-        # heading error a gap built is no sure measure of it (Karlsruhe s492: three matches
-        # after a 3.7-s gap in a roundabout, on no true marking, pulled the heading 1.1 deg; the
-        # gap's yaw-bias covariance read it as a bias of +0.18 deg/s against a true -0.05, and
-        # the heading drifted 0.16 deg/s for 17 s); accepted matches since the last gap
-        self.matches_since_gap = self.bias_settle_matches
 
     # -- verbs ------------------------------------------------------------------------------
 
@@ -234,13 +229,9 @@ class Localizer:
         keeps of it: the correction, the travel at the last match and along-road fix."""
         predicted = self.ekf.pose[:2]
         info, held = (None, False) if result is None else self._held(result)
-        if self.unmatched_frames >= self.settle_frames:  # a gap: the next matches settle
-            self.matches_since_gap = 0
         # a hold is no measurement of the wheel: the scale learns nothing from it
         accepted = result is not None and self.ekf.update_posterior(
-            result.pose, info, consider_scale=self.hold_considers_scale and held,
-            consider_bias=self.matches_since_gap < self.bias_settle_matches)
-        self.matches_since_gap += int(accepted)
+            result.pose, info, consider_scale=self.hold_considers_scale and held)
         if accepted and self.unmatched_frames >= self.settle_frames:  # markings are back
             self.pull_since_back, self.matches_since_back = np.zeros(2), 0
             if self.settled_matches >= self.reacquire_settle_frames:  # (else still settling)
@@ -515,7 +506,6 @@ class Localizer:
         self.gnss_check.reset()
         self.settled_matches, self.pull_since_gap = 0, np.zeros(2)
         self.pull_since_back, self.matches_since_back = np.zeros(2), 0
-        self.matches_since_gap = self.bias_settle_matches  # a start's bias has no gap in it
         self.inits += 1
         logger.info("initialized at %s (init #%d)", np.round(res.pose, 2), self.inits)
 
@@ -727,11 +717,11 @@ def get_localizer(lc, cache: TileCache, seed: int = 0, camera=None) -> Localizer
         max_points=lc.max_points,
         road_fraction=lc.road_fraction,
         gnss_inflate=lc.gnss_inflate,
-        init_travel_m=lc.init_travel_m, init_frames=lc.init_frames,
+        init_travel_m=lc.init_travel_m,
+        init_frames=lc.init_frames,
         reinit_bad_frames=lc.reinit_bad_frames,
         hold_m=lc.hold_along_road_m, hold_below_m=lc.hold_below_m,
         hold_considers_scale=lc.hold_considers_scale,
-        bias_settle_matches=lc.gyro_bias_settle_matches,
         recent_frames=lc.recent_frames,
         track_gate_m=lc.icp_track_gate_m,
         alert_limit_m=lc.alert_limit_m,

@@ -806,66 +806,6 @@ def test_a_gyro_bias_beyond_its_prior_is_a_fault_a_restart_forgets():
     assert wrong.gyro_bias_rps == 0.0 and wrong.ok
 
 
-@pytest.mark.parametrize("match_bias", [MatchBias(), INDEPENDENT])
-def test_a_considered_gyro_bias_keeps_its_estimate_while_the_heading_turns(match_bias):
-    """After 4 s without matches the heading's error is mostly the gyro bias's: a match that
-    turns the heading 1 deg moves the bias (1 deg over 4 s reads as 0.25 deg/s) unless the bias
-    is considered; then the heading turns as much, and the bias and its variance stand."""
-
-    def after_gap(consider_bias):
-        f = PoseFilter(freeze_scale_on_reset=False, match_bias=match_bias,
-                       gate_prob_chi2={2: 1e6, 3: 1e6})
-        f.reset(np.zeros(3), np.diag([0.02**2, 0.02**2, math.radians(0.1) ** 2]))
-        for _ in range(40):
-            f.predict(10.0, 0.0, 0.1)
-        bias_var = f.ekf.P[4, 4]
-        info = np.diag([1 / 0.05**2, 1 / 0.05**2, 1 / math.radians(0.05) ** 2])
-        assert f.update_posterior(f.pose + [0.0, 0.0, math.radians(1.0)], info,
-                                  gate_chi2=1e6, consider_bias=consider_bias)
-        assert np.all(np.linalg.eigvalsh(f.ekf.P) > -1e-12)  # (the shared yaw error: 0)
-        return f, bias_var
-
-    taught, _ = after_gap(False)
-    assert math.degrees(taught.gyro_bias_rps) < -0.1
-    kept, bias_var = after_gap(True)
-    assert kept.gyro_bias_rps == 0.0 and kept.ekf.P[4, 4] == pytest.approx(bias_var)
-    assert math.degrees(kept.pose[2]) == pytest.approx(math.degrees(taught.pose[2]), abs=0.1)
-
-
-def test_the_first_matches_after_a_gap_do_not_teach_the_gyro_bias(road_cache):
-    """Matches that turn the heading right after a gap leave the gyro bias; the same matches
-    once gyro_bias_settle_matches were accepted since the gap teach it."""
-    from services.localizer.icp import IcpResult
-
-    loc = get_localizer(LocalizerConfig(), road_cache)
-    loc.ekf.reset(np.array([0.0, 28.25, 0.0]), np.diag([0.05**2, 0.05**2, math.radians(0.3) ** 2]))
-    info = np.diag([1e4, 1e4, 1 / math.radians(0.2) ** 2])
-
-    def turn(deg):
-        loc.ekf.predict(10.0, 0.0, 0.1)
-        res = IcpResult(loc.ekf.pose + [0.0, 0.0, math.radians(deg)], np.linalg.inv(info), 500,
-                        500, 0.02, False, np.array([1.0, 0.0, 0.0]), np.zeros(3), 5,
-                        information=info)
-        assert loc._fuse(res)
-
-    def gap():
-        for _ in range(LocalizerConfig.settle_frames + 20):
-            loc.ekf.predict(10.0, 0.0, 0.1)
-            assert not loc._fuse(None)
-
-    gap()
-    for _ in range(LocalizerConfig.gyro_bias_settle_matches):
-        turn(0.1)
-    assert loc.ekf.gyro_bias_rps == 0.0
-    turn(0.0)  # (the heading turned since: the next match sees no more turn)
-    gap()
-    for _ in range(LocalizerConfig.gyro_bias_settle_matches):
-        turn(0.0)
-    for _ in range(3):
-        turn(0.1)
-    assert math.degrees(loc.ekf.gyro_bias_rps) < -0.01
-
-
 @pytest.mark.parametrize("pull_m, restarted", [(-2.0, False), (-8.0, True)])
 def test_a_scale_driven_to_its_limit_starts_again_from_its_prior(pull_m, restarted):
     """100 m of odometry, then a match the pose's covariance lets through: a 2 m pull is 2 %
