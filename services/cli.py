@@ -181,10 +181,11 @@ def _eval(p: argparse.ArgumentParser) -> None:
                    "run's drives again offline from their mapping drives' stored frames with "
                    "today's mapper and --set (vehicle., segmentation., merger.), and write the "
                    "suite's eval.json with their map figures")
-    p.add_argument("--compare", nargs=2, metavar=("A", "B"), default=None, help="two runs "
+    p.add_argument("--compare", nargs="+", metavar="RUN", default=None, help="two runs A B "
                    "(their --out, or eval.json files) paired by drive: per metric each side's "
                    "median / p90 / worst, the mean difference B - A and its paired t, the drives "
-                   "better and worse, integrity; writes --out/compare.json")
+                   "better and worse, integrity; more pairs (A B A2 B2 ...: the suite and "
+                   "held-out sets before and after) are pooled; writes --out/compare.json")
     _common(p)
 
 

@@ -18,8 +18,8 @@ offline from its mapping drives' stored frames with today's mapper and segmenter
 (services/eval/remap.py) and merged and scored anew: minutes for the suite, to judge a change of
 the vehicles' side of the map paired by drive. The cars' figures stay RUN's.
 
-`roadmap eval --compare A B [--out DIR]`: two runs paired by drive (services/eval/compare.py),
-to the terminal and DIR/compare.json."""
+`roadmap eval --compare A B [A2 B2 ...] [--out DIR]`: runs paired by drive, several pairs pooled
+(services/eval/compare.py), to the terminal and DIR/compare.json."""
 
 import json
 import logging
@@ -29,7 +29,7 @@ from functools import partial
 from pathlib import Path
 
 from common.errors import ConfigError
-from services.eval.compare import compare_runs, format_comparison, read_eval
+from services.eval.compare import compare_runs, format_comparison, pooled, read_eval
 from services.eval.figure import eval_figure
 from services.eval.remap import remap_drive
 from services.eval.remerge import remerge_drive
@@ -171,11 +171,19 @@ def eval_command(args, cfg) -> int:
 
 
 def compare_command(runs: list[str], out: Path) -> int:
-    """`--compare A B`: the two runs paired by drive, to the terminal and OUT/compare.json."""
-    a, b = (read_eval(Path(r)) for r in runs)
-    comparison = {"a": str(runs[0]), "b": str(runs[1]), **compare_runs(a, b)}
+    """`--compare A B [A2 B2 ...]`: the runs paired by drive (several pairs pooled), to the
+    terminal and OUT/compare.json."""
+    if len(runs) < 2 or len(runs) % 2:
+        raise ConfigError(f"--compare takes pairs of runs (A B [A2 B2 ...]), got {len(runs)}")
+    a_runs, b_runs = runs[0::2], runs[1::2]
+    a = pooled([read_eval(Path(r)) for r in a_runs], "a")
+    b = pooled([read_eval(Path(r)) for r in b_runs], "b")
+    one = len(a_runs) == 1
+    comparison = {"a": str(a_runs[0]) if one else [str(r) for r in a_runs],
+                  "b": str(b_runs[0]) if one else [str(r) for r in b_runs], **compare_runs(a, b)}
     if not comparison["paired"]:
-        raise ConfigError(f"--compare: {runs[0]} and {runs[1]} have no finished drive in common")
+        raise ConfigError(f"--compare: {' '.join(a_runs)} and {' '.join(b_runs)} have no "
+                          "finished drive in common")
     out.mkdir(parents=True, exist_ok=True)
     (out / "compare.json").write_text(json.dumps(comparison, indent=1))
     sys.stdout.write(format_comparison(comparison))

@@ -1,4 +1,4 @@
-"""Two evaluation runs paired by drive: `roadmap eval --compare A B [--out DIR]`.
+"""Two evaluation runs paired by drive: `roadmap eval --compare A B [A2 B2 ...] [--out DIR]`.
 
 A change to the car is kept when the suite, paired by drive, says it helps: one drive's numbers
 move by 15-20 % from noise alone, so only the same drive (world and seed: the same route, fleet,
@@ -11,7 +11,8 @@ their paired t, and how many drives b is better or worse on by more than a toler
 change should not be credited with). Integrity: each side's violation frames, and the drives
 with violation frames on b that had none on a; what it costs: the least availability and the
 share of frames said ok. Drives only one side finished are listed, not
-paired."""
+paired. Several pairs (the suite and held-out sets, each run before and after) are pooled: the
+a runs' drives against the b runs', one paired comparison over all of them."""
 
 import json
 from pathlib import Path
@@ -40,6 +41,22 @@ def read_eval(path: Path) -> dict:
     if not isinstance(data, dict) or not isinstance(data.get("drives"), list):
         raise ConfigError(f"--compare: {file} has no drives (not a roadmap eval.json)")
     return data
+
+
+def pooled(runs: list[dict], side: str) -> dict:
+    """Several eval.json contents as one run (their drives together): a change judged over the
+    suite and held-out sets at once. A drive (world and seed) in two of them is an error: which
+    one to pair would be a guess."""
+    drives, seen = [], set()
+    for data in runs:
+        for e in data["drives"]:
+            key = (e.get("world"), e.get("seed"))
+            if key in seen:
+                raise ConfigError(f"--compare: drive {key[0]} s{key[1]} is in two of the {side} "
+                                  "runs")
+            seen.add(key)
+            drives.append(e)
+    return {"drives": drives}
 
 
 def drive_scores(data: dict) -> dict[str, dict]:

@@ -11,7 +11,7 @@ from common.camera import camera_from_config
 from common.config import RoadmapConfig
 from common.grid import TILE_CELLS
 from services.eval import map as ev
-from services.eval.compare import compare_runs, format_comparison
+from services.eval.compare import compare_runs, format_comparison, pooled
 from services.eval.replay import evict
 from services.eval.score import score_frames
 from services.eval.suite import Drive, parse_seeds, suite_drives
@@ -287,3 +287,26 @@ def test_two_runs_are_compared_drive_by_drive():
     assert c["availability_0_5m_min"] == {"a": 1.0, "b": 0.9}
     assert c["ok_share"]["a"] == {"min": 0.8, "median": 0.8} and c["ok_share"]["b"]["min"] == 0.5
     assert "new on: av2:/d/3bff s1" in format_comparison(c)
+
+
+def test_several_pairs_of_runs_pool_into_one_comparison(tmp_path):
+    """The suite and a held-out set, each before and after: their drives pair across both; a
+    drive in two runs of one side is an error, as is an odd number of runs."""
+    from common.errors import ConfigError
+    from services.eval.command import compare_command
+
+    runs = {"suite_a": [_scored("town", 1, 0.05), _scored("town", 2, 0.10)],
+            "suite_b": [_scored("town", 1, 0.04), _scored("town", 2, 0.12)],
+            "held_a": [_scored("town", 41, 0.05)], "held_b": [_scored("town", 41, 0.03)]}
+    for name, drives in runs.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "eval.json").write_text(json.dumps({"drives": drives}))
+    paths = [str(tmp_path / n) for n in ("suite_a", "suite_b", "held_a", "held_b")]
+    assert compare_command(paths, tmp_path / "cmp") == 0
+    c = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert c["paired"] == 3 and c["a"] == paths[0::2] and c["b"] == paths[1::2]
+    assert (c["metrics"]["x_m"]["better"], c["metrics"]["x_m"]["worse"]) == (2, 1)
+    with pytest.raises(ConfigError, match="in two of the a runs"):
+        pooled([{"drives": runs["held_a"]}, {"drives": runs["held_a"]}], "a")
+    with pytest.raises(ConfigError, match="pairs of runs"):
+        compare_command(paths[:3], tmp_path / "cmp")
