@@ -50,13 +50,17 @@ def pooled(runs: list[dict], side: str) -> dict:
     drives, seen = [], set()
     for data in runs:
         for e in data["drives"]:
-            key = (e.get("world"), e.get("seed"))
+            key = drive_key(e)
             if key in seen:
-                raise ConfigError(f"--compare: drive {key[0]} s{key[1]} is in two of the {side} "
-                                  "runs")
+                raise ConfigError(f"--compare: drive {key} is in two of the {side} runs")
             seen.add(key)
             drives.append(e)
     return {"drives": drives}
+
+
+def drive_key(entry: dict) -> str:
+    """A drive's identity across runs, 'world s<seed>': the same route, fleet, map and noise."""
+    return f"{entry.get('world')} s{entry.get('seed')}"
 
 
 def drive_scores(data: dict) -> dict[str, dict]:
@@ -68,7 +72,7 @@ def drive_scores(data: dict) -> dict[str, dict]:
         if not e.get("ok") or not score:
             continue
         seen = score["markings_in_view"]
-        out[f"{e['world']} s{e['seed']}"] = {
+        out[drive_key(e)] = {
             **{m: seen[m]["mean"] for m in METRICS},
             "integrity_violations": int(score["integrity_violations"]),
             "availability_0_5m": seen["availability_0_5m"],
